@@ -1,0 +1,48 @@
+"""The ``radarslam`` command line.
+
+Command modules are imported here but keep heavy libraries (torch, open3d, gtsam, kiss_icp) inside
+their function bodies, so ``radarslam --help`` stays instant.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from radarslam.errors import RadarSlamError
+
+app = typer.Typer(
+    name="radarslam",
+    help="Radar SLAM for nuScenes-style automotive radar (5x Continental ARS408).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+# --- command registration (each module is light at import time) -------------------------------
+# BEGIN COMMANDS
+# END COMMANDS
+
+
+def main() -> None:
+    """Console entry point: user errors become one line on stderr and exit status 2."""
+    try:
+        app(standalone_mode=False)
+    except RadarSlamError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
+    except SystemExit:
+        raise
+    except Exception as exc:  # click usage errors arrive here in non-standalone mode
+        import click
+
+        if isinstance(exc, click.exceptions.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        if isinstance(exc, click.exceptions.Abort):
+            sys.exit(1)
+        raise

@@ -1,0 +1,1 @@
+"""File output helpers: atomic writes, trajectory formats."""
