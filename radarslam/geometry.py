@@ -111,4 +111,4 @@ def orthonormalize(pose: np.ndarray) -> np.ndarray:
 
 def wrap_angle(a):
     """Wrap angle(s) to (-pi, pi]."""
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+    return np.pi - (np.pi - np.asarray(a)) % (2 * np.pi)

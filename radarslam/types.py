@@ -1,8 +1,8 @@
 """Typed records shared by every stage.
 
-Conventions (see docs/conventions in the README):
-- Timestamps are integer microseconds (``timestamp_us``), as in nuScenes; durations derived from them
-  are float seconds named ``*_s``.
+Conventions (also in docs/DEVELOPING.md):
+- Timestamps are integer microseconds (``timestamp_us``), as in nuScenes; durations derived from
+  them are float seconds named ``*_s``.
 - Poses are 4x4 float64 matrices named ``a_from_b``; frames are ``world`` (nuScenes global),
   ``ego`` (the vehicle's rear axle, nuScenes ``ego_pose``) and ``sensor`` (one radar).
 - Radar points are structured numpy arrays of :data:`RADAR_DTYPE` (the 18 nuScenes fields) in the
@@ -24,8 +24,8 @@ RADAR_CHANNELS: tuple[str, ...] = (
 )
 
 RADAR_FIELDS: tuple[str, ...] = (
-    "x", "y", "z", "dyn_prop", "id", "rcs", "vx", "vy", "vx_comp", "vy_comp",
-    "is_quality_valid", "ambig_state", "x_rms", "y_rms", "invalid_state", "pdh0", "vx_rms", "vy_rms",
+    "x", "y", "z", "dyn_prop", "id", "rcs", "vx", "vy", "vx_comp", "vy_comp", "is_quality_valid",
+    "ambig_state", "x_rms", "y_rms", "invalid_state", "pdh0", "vx_rms", "vy_rms",
 )  # fmt: skip
 
 #: One packed little-endian 43-byte record of a nuScenes radar ``.pcd`` file, in FIELDS order.
