@@ -1,0 +1,153 @@
+"""Trajectory files: TUM (evo's ``tum`` format) and KITTI odometry format, written atomically.
+
+TUM: one pose per line ``timestamp_s tx ty tz qx qy qz qw`` (seconds, quaternion scalar LAST),
+``#`` comment lines allowed. Timestamps are integer microseconds in memory and are written as exact
+decimal seconds with six fractional digits, so a round trip is lossless.
+
+KITTI: one pose per line, the 12 numbers of the top 3x4 block of ``world_from_ego`` row-major, no
+timestamps.
+
+Poses are ``(N, 4, 4)`` float64 ``world_from_ego`` matrices. Numbers are written with Python's
+shortest round-trip representation, so positions survive a write/read unchanged.
+"""
+
+from __future__ import annotations
+
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+
+import numpy as np
+
+from radarslam.errors import DataError
+from radarslam.geometry import make_transform, rotation_to_quat
+from radarslam.io.atomic import atomic_open
+
+
+def _check_poses(poses, what: str) -> np.ndarray:
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise DataError(f"{what}: poses must have shape (N, 4, 4), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.argmax(~np.all(np.isfinite(arr), axis=(1, 2))))
+        raise DataError(f"{what}: pose {bad} has non-finite entries")
+    return arr
+
+
+def _check_timestamps(timestamps_us, n: int, what: str) -> np.ndarray:
+    ts = np.asarray(timestamps_us)
+    if ts.ndim != 1 or len(ts) != n:
+        raise DataError(f"{what}: {ts.shape} timestamps for {n} poses (need one per pose)")
+    if ts.size and not np.issubdtype(ts.dtype, np.integer):
+        if not np.all(np.isfinite(ts)) or np.any(ts != np.round(ts)):
+            raise DataError(f"{what}: timestamps_us must be integer microseconds")
+    return ts.astype(np.int64)
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def _us_to_seconds_text(t_us: int) -> str:
+    t_us = int(t_us)
+    sign = "-" if t_us < 0 else ""
+    a = abs(t_us)
+    return f"{sign}{a // 1_000_000}.{a % 1_000_000:06d}"
+
+
+def _seconds_text_to_us(text: str) -> int:
+    # Decimal keeps nuScenes-sized timestamps (~1.5e15 us) exact where float64 seconds would not.
+    value = Decimal(text) * 1_000_000
+    if not value.is_finite():
+        raise InvalidOperation
+    return int(value.to_integral_value())
+
+
+def write_tum(path: str | Path, timestamps_us, poses) -> None:
+    """Write ``timestamp_s tx ty tz qx qy qz qw`` lines (evo's TUM format), atomically."""
+    arr = _check_poses(poses, str(path))
+    ts = _check_timestamps(timestamps_us, len(arr), str(path))
+    lines = []
+    for t, pose in zip(ts, arr, strict=True):
+        w, x, y, z = rotation_to_quat(pose[:3, :3])
+        tx, ty, tz = pose[:3, 3]
+        fields = [_us_to_seconds_text(t)] + [_fmt(v) for v in (tx, ty, tz, x, y, z, w)]
+        lines.append(" ".join(fields))
+    with atomic_open(path, "w") as fh:
+        fh.write("# timestamp_s tx ty tz qx qy qz qw\n")
+        fh.write("".join(line + "\n" for line in lines))
+
+
+def _data_lines(path: Path):
+    if not path.is_file():
+        raise DataError(f"{path}: trajectory file does not exist")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: not a text trajectory file") from None
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        # evo/TUM tools also accept comma separated values
+        yield lineno, line.replace(",", " ").split()
+
+
+def _floats(path: Path, lineno: int, tokens: list[str], start: int = 0) -> list[float]:
+    try:
+        values = [float(t) for t in tokens[start:]]
+    except ValueError:
+        raise DataError(f"{path}:{lineno}: non-numeric value in {' '.join(tokens)!r}") from None
+    if not all(np.isfinite(values)):
+        raise DataError(f"{path}:{lineno}: non-finite value in {' '.join(tokens)!r}")
+    return values
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM file -> (timestamps_us (N,) int64, poses (N, 4, 4) float64)."""
+    path = Path(path)
+    stamps: list[int] = []
+    poses: list[np.ndarray] = []
+    for lineno, tokens in _data_lines(path):
+        if len(tokens) != 8:
+            raise DataError(
+                f"{path}:{lineno}: expected 8 values (timestamp_s tx ty tz qx qy qz qw), "
+                f"got {len(tokens)}"
+            )
+        try:
+            stamps.append(_seconds_text_to_us(tokens[0]))
+        except (InvalidOperation, ValueError):
+            raise DataError(f"{path}:{lineno}: bad timestamp {tokens[0]!r}") from None
+        tx, ty, tz, qx, qy, qz, qw = _floats(path, lineno, tokens, 1)
+        if qx * qx + qy * qy + qz * qz + qw * qw < 1e-12:
+            raise DataError(f"{path}:{lineno}: zero-norm quaternion")
+        poses.append(make_transform((tx, ty, tz), (qw, qx, qy, qz)))
+    if not poses:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))
+    return np.asarray(stamps, dtype=np.int64), np.stack(poses)
+
+
+def write_kitti(path: str | Path, poses) -> None:
+    """Write each pose's 3x4 block as 12 numbers per line (KITTI odometry format), atomically."""
+    arr = _check_poses(poses, str(path))
+    with atomic_open(path, "w") as fh:
+        for pose in arr:
+            fh.write(" ".join(_fmt(v) for v in pose[:3, :4].reshape(-1)) + "\n")
+
+
+def read_kitti(path: str | Path) -> np.ndarray:
+    """Read a KITTI pose file -> (N, 4, 4) float64."""
+    path = Path(path)
+    poses = []
+    for lineno, tokens in _data_lines(path):
+        if len(tokens) != 12:
+            raise DataError(f"{path}:{lineno}: expected 12 values (3x4 pose), got {len(tokens)}")
+        pose = np.eye(4)
+        pose[:3, :4] = np.asarray(_floats(path, lineno, tokens)).reshape(3, 4)
+        rot = pose[:3, :3]
+        orthogonal = np.allclose(rot @ rot.T, np.eye(3), atol=1e-3)
+        if abs(np.linalg.det(rot) - 1.0) > 1e-3 or not orthogonal:
+            raise DataError(f"{path}:{lineno}: rotation block is not a rotation matrix")
+        poses.append(pose)
+    if not poses:
+        return np.zeros((0, 4, 4))
+    return np.stack(poses)
