@@ -1,0 +1,1 @@
+"""Evaluation: trajectory metrics, loop-closure precision/recall, plots, ``radarslam eval``."""

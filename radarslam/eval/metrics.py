@@ -1,0 +1,410 @@
+"""Trajectory error metrics: the pure-math core of ``radarslam eval`` (evo-like layering).
+
+Layers: plane geometry helpers -> one function per metric returning a frozen result dataclass
+(:func:`ate`, :func:`rpe`, :func:`drift`) -> the results-folder evaluator (``evaluate.py``) -> CLI.
+
+Everything is evaluated **in the ground plane**: poses are projected to (x, y, yaw) before any
+alignment or error, because the radar estimate is planar while nuScenes ground truth carries a
+little z / roll / pitch that the radars cannot observe. On planar trajectories the numbers equal
+evo's ``ape``/``rpe`` with ``align=True, correct_scale=False`` (checked in the tests).
+
+Inputs are ``(N, 4, 4)`` ``world_from_ego`` poses or ``(N, 3)`` (x, y, yaw) arrays, estimate and
+reference already associated index by index.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from radarslam.errors import DataError
+
+AlignMode = Literal["se2", "none", "first"]
+DeltaUnit = Literal["s", "m", "frames"]
+
+
+# --- plane geometry ----------------------------------------------------------------------------
+
+
+def to_xy_yaw(poses, what: str = "poses") -> np.ndarray:
+    """(N, 3) (x, y, yaw) from (N, 4, 4) poses or an (N, 3) array (returned as float64 copy)."""
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim == 3 and arr.shape[1:] == (4, 4):
+        out = np.column_stack([arr[:, 0, 3], arr[:, 1, 3], np.arctan2(arr[:, 1, 0], arr[:, 0, 0])])
+    elif arr.ndim == 2 and arr.shape[1] == 3:
+        out = arr.copy()
+    else:
+        raise DataError(f"{what}: expected (N, 4, 4) poses or (N, 3) x/y/yaw, got {arr.shape}")
+    if not np.all(np.isfinite(out)):
+        raise DataError(f"{what}: non-finite pose values")
+    return out
+
+
+def _check_pair(est, ref) -> tuple[np.ndarray, np.ndarray]:
+    e = to_xy_yaw(est, "estimate")
+    r = to_xy_yaw(ref, "reference")
+    if len(e) != len(r):
+        raise DataError(f"estimate has {len(e)} poses but reference has {len(r)}")
+    if len(e) == 0:
+        raise DataError("no poses to evaluate")
+    return e, r
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a ⊕ b for (..., 3) x/y/yaw arrays (broadcasting)."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, _wrap(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a⁻¹ ⊕ b (the pose of b in a's frame) for (..., 3) arrays."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, _wrap(b[..., 2] - a[..., 2])], axis=-1)
+
+
+@dataclass(frozen=True)
+class Alignment2D:
+    """``ref_from_est`` rigid planar transform: p_ref = R p_est + t."""
+
+    rotation: np.ndarray  # (2, 2)
+    translation: np.ndarray  # (2,)
+
+    @property
+    def yaw_rad(self) -> float:
+        return float(np.arctan2(self.rotation[1, 0], self.rotation[0, 0]))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4x4 ``ref_from_est``."""
+        out = np.eye(4)
+        out[:2, :2] = self.rotation
+        out[:2, 3] = self.translation
+        return out
+
+    def apply(self, xy_yaw: np.ndarray) -> np.ndarray:
+        out = np.empty_like(xy_yaw)
+        out[:, :2] = xy_yaw[:, :2] @ self.rotation.T + self.translation
+        out[:, 2] = _wrap(xy_yaw[:, 2] + self.yaw_rad)
+        return out
+
+
+IDENTITY_ALIGNMENT = Alignment2D(np.eye(2), np.zeros(2))
+
+
+def align_se2(est_xy, ref_xy) -> Alignment2D:
+    """Least-squares rigid alignment in the plane (Umeyama without scale): ``ref ≈ R est + t``.
+
+    Accepts (N, 2) positions, (N, 3) x/y/yaw or (N, 4, 4) poses (only positions are used).
+    """
+    e = _positions(est_xy, "estimate")
+    r = _positions(ref_xy, "reference")
+    if len(e) != len(r):
+        raise DataError(f"alignment: estimate has {len(e)} positions, reference {len(r)}")
+    if len(e) == 0:
+        raise DataError("alignment: no positions")
+    mean_e, mean_r = e.mean(axis=0), r.mean(axis=0)
+    cov = (r - mean_r).T @ (e - mean_e) / len(e)
+    u, d, vt = np.linalg.svd(cov)
+    if np.count_nonzero(d > 1e-12 * max(1.0, d[0])) < 1:
+        # every position identical: only the translation is observable
+        return Alignment2D(np.eye(2), mean_r - mean_e)
+    s = np.eye(2)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s[1, 1] = -1.0  # proper rotation, never a reflection
+    rot = u @ s @ vt
+    return Alignment2D(rot, mean_r - rot @ mean_e)
+
+
+def _positions(a, what: str) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim == 2 and arr.shape[1] == 2:
+        pos = arr
+    else:
+        pos = to_xy_yaw(arr, what)[:, :2]
+    if not np.all(np.isfinite(pos)):
+        raise DataError(f"{what}: non-finite positions")
+    return pos
+
+
+def align_first(est_xy_yaw: np.ndarray, ref_xy_yaw: np.ndarray) -> Alignment2D:
+    """The planar transform that puts the first estimated pose exactly on the first reference."""
+    e0, r0 = est_xy_yaw[0], ref_xy_yaw[0]
+    dyaw = r0[2] - e0[2]
+    c, s = np.cos(dyaw), np.sin(dyaw)
+    rot = np.array([[c, -s], [s, c]])
+    return Alignment2D(rot, r0[:2] - rot @ e0[:2])
+
+
+# --- statistics --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    rmse: float
+    mean: float
+    median: float
+    std: float
+    min: float
+    max: float
+    count: int
+
+    @staticmethod
+    def of(errors: np.ndarray) -> ErrorStats:
+        e = np.asarray(errors, dtype=np.float64)
+        if e.size == 0:
+            nan = float("nan")
+            return ErrorStats(nan, nan, nan, nan, nan, nan, 0)
+        return ErrorStats(
+            rmse=float(np.sqrt(np.mean(e * e))),
+            mean=float(np.mean(e)),
+            median=float(np.median(e)),
+            std=float(np.std(e)),
+            min=float(np.min(e)),
+            max=float(np.max(e)),
+            count=int(e.size),
+        )
+
+
+# --- absolute trajectory error -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AteResult:
+    """Absolute trajectory error (planar position error after alignment)."""
+
+    rmse_m: float
+    mean_m: float
+    median_m: float
+    max_m: float
+    std_m: float
+    yaw_rmse_deg: float
+    errors_m: np.ndarray = field(repr=False)  # (N,) per-pose position error
+    yaw_errors_deg: np.ndarray = field(repr=False)  # (N,) signed heading error
+    alignment: Alignment2D = field(repr=False, default=IDENTITY_ALIGNMENT)
+    align: str = "se2"
+
+    @property
+    def count(self) -> int:
+        return int(self.errors_m.size)
+
+
+def ate(est_poses, ref_poses, align: AlignMode = "se2") -> AteResult:
+    """Absolute trajectory error in the ground plane.
+
+    align: ``"se2"`` least-squares rigid alignment of all positions (evo ``align=True``),
+    ``"first"`` the first poses made to coincide (how an unaligned odometry run is judged), or
+    ``"none"`` (the estimate is already in the reference frame, e.g. SLAM anchored on the prior).
+    """
+    e, r = _check_pair(est_poses, ref_poses)
+    if align == "se2":
+        al = align_se2(e[:, :2], r[:, :2])
+    elif align == "first":
+        al = align_first(e, r)
+    elif align == "none":
+        al = IDENTITY_ALIGNMENT
+    else:
+        raise DataError(f"ATE: unknown alignment {align!r} (expected se2, first or none)")
+    aligned = al.apply(e)
+    errors = np.linalg.norm(aligned[:, :2] - r[:, :2], axis=1)
+    yaw_err = np.rad2deg(_wrap(aligned[:, 2] - r[:, 2]))
+    st = ErrorStats.of(errors)
+    return AteResult(
+        rmse_m=st.rmse,
+        mean_m=st.mean,
+        median_m=st.median,
+        max_m=st.max,
+        std_m=st.std,
+        yaw_rmse_deg=float(np.sqrt(np.mean(yaw_err**2))),
+        errors_m=errors,
+        yaw_errors_deg=yaw_err,
+        alignment=al,
+        align=align,
+    )
+
+
+# --- relative pose error -----------------------------------------------------------------------
+
+
+def path_lengths_m(xy_yaw: np.ndarray) -> np.ndarray:
+    """Cumulative travelled distance (N,) along the positions, starting at 0."""
+    steps = np.linalg.norm(np.diff(xy_yaw[:, :2], axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def pairs_for_delta(
+    ref_xy_yaw: np.ndarray,
+    timestamps_us: np.ndarray | None,
+    delta: float,
+    unit: DeltaUnit,
+) -> np.ndarray:
+    """(K, 2) index pairs (i, j): for every start i, the first j at least ``delta`` later.
+
+    ``frames``: j = i + delta. ``s``: first j with t_j - t_i >= delta seconds (1 ms slack for
+    sensor jitter). ``m``: first j whose travelled reference path from i is >= delta metres.
+    Starts whose j would fall off the end are dropped.
+    """
+    n = len(ref_xy_yaw)
+    if not np.isfinite(delta) or delta <= 0:
+        raise DataError(f"RPE: delta must be > 0, got {delta}")
+    starts = np.arange(n)
+    if unit == "frames":
+        if delta != int(delta):
+            raise DataError(f"RPE: delta in frames must be an integer, got {delta}")
+        ends = starts + int(delta)
+    elif unit == "s":
+        if timestamps_us is None:
+            raise DataError("RPE: delta in seconds needs timestamps_us")
+        t = np.asarray(timestamps_us, dtype=np.int64)
+        if t.shape != (n,):
+            raise DataError(f"RPE: {t.shape} timestamps for {n} poses")
+        if np.any(np.diff(t) < 0):
+            raise DataError("RPE: timestamps_us are not sorted")
+        target = t + round(delta * 1e6) - 1000
+        ends = np.searchsorted(t, target, side="left")
+    elif unit == "m":
+        d = path_lengths_m(ref_xy_yaw)
+        ends = np.searchsorted(d, d + delta - 1e-9, side="left")
+    else:
+        raise DataError(f"RPE: unknown delta unit {unit!r} (expected s, m or frames)")
+    keep = (ends < n) & (ends > starts)
+    return np.column_stack([starts[keep], ends[keep]])
+
+
+@dataclass(frozen=True)
+class RpeResult:
+    """Relative pose error over pairs ``delta`` apart (all start indices)."""
+
+    delta: float
+    unit: str
+    trans_rmse_m: float
+    trans_mean_m: float
+    trans_median_m: float
+    trans_max_m: float
+    rot_rmse_deg: float
+    rot_mean_deg: float
+    rot_max_deg: float
+    trans_errors_m: np.ndarray = field(repr=False)
+    rot_errors_deg: np.ndarray = field(repr=False)
+    pairs: np.ndarray = field(repr=False)  # (K, 2)
+
+    @property
+    def count(self) -> int:
+        return len(self.pairs)
+
+
+def relative_errors(e: np.ndarray, r: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(K, 3) error poses ``(ref_i⁻¹ ref_j)⁻¹ (est_i⁻¹ est_j)`` for the index pairs."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    d_ref = se2_between(r[i], r[j])
+    d_est = se2_between(e[i], e[j])
+    return se2_between(d_ref, d_est)
+
+
+def rpe(
+    est_poses,
+    ref_poses,
+    timestamps_us=None,
+    delta: float = 1.0,
+    unit: DeltaUnit = "s",
+) -> RpeResult:
+    """Relative pose error: translation norm and absolute heading of the error pose per pair.
+
+    With ``unit="frames"`` this equals evo's RPE ``all_pairs=True`` (translation_part and
+    rotation_angle_deg) on planar trajectories. No alignment is needed (it is invariant to it).
+    """
+    e, r = _check_pair(est_poses, ref_poses)
+    pairs = pairs_for_delta(r, timestamps_us, delta, unit)
+    if len(pairs):
+        err = relative_errors(e, r, pairs)
+        trans = np.linalg.norm(err[:, :2], axis=1)
+        rot = np.rad2deg(np.abs(err[:, 2]))
+    else:
+        trans = rot = np.zeros(0)
+    ts, rs = ErrorStats.of(trans), ErrorStats.of(rot)
+    return RpeResult(
+        delta=float(delta),
+        unit=unit,
+        trans_rmse_m=ts.rmse,
+        trans_mean_m=ts.mean,
+        trans_median_m=ts.median,
+        trans_max_m=ts.max,
+        rot_rmse_deg=rs.rmse,
+        rot_mean_deg=rs.mean,
+        rot_max_deg=rs.max,
+        trans_errors_m=trans,
+        rot_errors_deg=rot,
+        pairs=pairs,
+    )
+
+
+# --- KITTI-style drift -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DriftResult:
+    """KITTI odometry metric: mean relative error over sub-sequences of fixed path length.
+
+    ``translation_pct`` is the translation error in % of the segment length and
+    ``rotation_deg_per_100m`` the heading error per 100 m, both averaged over every segment of
+    every length; NaN (with ``num_segments == 0``) when the run is shorter than every length.
+    """
+
+    translation_pct: float
+    rotation_deg_per_100m: float
+    num_segments: int
+    per_length: dict[float, tuple[float, float, int]]  # length -> (pct, deg/100m, count)
+
+
+def drift(
+    est_poses,
+    ref_poses,
+    segment_lengths_m=(100.0,),
+    step_frames: int = 1,
+) -> DriftResult:
+    """KITTI-style drift: for each start (every ``step_frames``) and length L, the first frame
+    whose reference path from the start is >= L; error = |t_err| / L and |yaw_err| / L."""
+    e, r = _check_pair(est_poses, ref_poses)
+    if step_frames < 1:
+        raise DataError(f"drift: step_frames must be >= 1, got {step_frames}")
+    lengths = [float(x) for x in segment_lengths_m]
+    if not lengths or any(not np.isfinite(x) or x <= 0 for x in lengths):
+        raise DataError(f"drift: segment lengths must be positive, got {list(segment_lengths_m)}")
+    dist = path_lengths_m(r)
+    starts = np.arange(0, len(r), step_frames)
+    all_t, all_r = [], []
+    per_length = {}
+    for length in lengths:
+        ends = np.searchsorted(dist, dist[starts] + length - 1e-9, side="left")
+        keep = ends < len(r)
+        pairs = np.column_stack([starts[keep], ends[keep]])
+        if len(pairs):
+            err = relative_errors(e, r, pairs)
+            t_rel = np.linalg.norm(err[:, :2], axis=1) / length
+            r_rel = np.rad2deg(np.abs(err[:, 2])) / length
+        else:
+            t_rel = r_rel = np.zeros(0)
+        all_t.append(t_rel)
+        all_r.append(r_rel)
+        per_length[length] = (
+            float(np.mean(t_rel) * 100) if len(t_rel) else float("nan"),
+            float(np.mean(r_rel) * 100) if len(r_rel) else float("nan"),
+            len(t_rel),
+        )
+    t_all, r_all = np.concatenate(all_t), np.concatenate(all_r)
+    if t_all.size == 0:
+        return DriftResult(float("nan"), float("nan"), 0, per_length)
+    return DriftResult(
+        translation_pct=float(np.mean(t_all) * 100),
+        rotation_deg_per_100m=float(np.mean(r_all) * 100),
+        num_segments=int(t_all.size),
+        per_length=per_length,
+    )

@@ -1,0 +1,1 @@
+"""SLAM back end: pose graph (GTSAM), loop verification, map and outputs."""

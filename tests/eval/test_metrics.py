@@ -1,0 +1,154 @@
+import copy
+
+import numpy as np
+import pytest
+
+from radarslam.errors import DataError
+from radarslam.eval.metrics import align_se2, ate, drift, pairs_for_delta, rpe, se2_between
+from radarslam.geometry import se2_to_matrix
+
+
+def _circle(n=200, radius=30.0):
+    th = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.column_stack([radius * np.cos(th), radius * np.sin(th), th + np.pi / 2])
+
+
+def _poses(xy_yaw):
+    return np.stack([se2_to_matrix(*p) for p in xy_yaw])
+
+
+def _noisy(ref, seed=0, sigma=(0.3, 0.3, 0.01)):
+    rng = np.random.default_rng(seed)
+    return ref + rng.normal(scale=sigma, size=ref.shape)
+
+
+def test_align_se2_recovers_a_rigid_transform():
+    ref = _circle()
+    rot = 0.7
+    c, s = np.cos(rot), np.sin(rot)
+    est_xy = (ref[:, :2] - [5.0, -2.0]) @ np.array([[c, -s], [s, c]])  # est = R^T (ref - t)
+    al = align_se2(est_xy, ref[:, :2])
+    assert al.yaw_rad == pytest.approx(rot, abs=1e-12)
+    np.testing.assert_allclose(
+        al.rotation @ est_xy.T + al.translation[:, None], ref[:, :2].T, atol=1e-9
+    )
+
+
+def test_ate_hand_computed():
+    ref = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])
+    est = ref + np.array([[0, 1, 0], [0, 1, 0], [0, 1, 0], [0, -3, 0]])
+    r = ate(est, ref, align="none")
+    np.testing.assert_allclose(r.errors_m, [1, 1, 1, 3])
+    assert r.rmse_m == pytest.approx(np.sqrt(12 / 4))
+    assert r.mean_m == 1.5 and r.median_m == 1.0 and r.max_m == 3.0
+    # first-pose alignment removes the constant +1 offset: errors 0, 0, 0, 4
+    r = ate(est, ref, align="first")
+    np.testing.assert_allclose(r.errors_m, [0, 0, 0, 4], atol=1e-12)
+    # se2 alignment of a pure translation offset is exact
+    r = ate(ref + np.array([10.0, -4.0, 0.0]), ref, align="se2")
+    assert r.rmse_m == pytest.approx(0.0, abs=1e-12)
+
+
+def test_rpe_hand_computed():
+    ref = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])
+    est = ref.copy()
+    est[2:, 2] = np.deg2rad(10)  # a 10 deg heading error appears between frames 1 and 2
+    r = rpe(est, ref, delta=1, unit="frames")
+    np.testing.assert_allclose(r.rot_errors_deg, [0, 10, 0], atol=1e-9)
+    # positions are right, so the step after the heading jump appears rotated by 10 deg
+    np.testing.assert_allclose(r.trans_errors_m, [0, 0, 2 * np.sin(np.deg2rad(5))], atol=1e-12)
+    # estimate twice as fast: each 1-frame step is 1 m too long
+    r = rpe(ref * [2, 1, 1], ref, delta=1, unit="frames")
+    np.testing.assert_allclose(r.trans_errors_m, [1, 1, 1])
+    ts = np.array([0, 500_000, 1_000_000, 1_499_900])
+    np.testing.assert_array_equal(pairs_for_delta(ref, ts, 1.0, "s"), [[0, 2], [1, 3]])
+    np.testing.assert_array_equal(pairs_for_delta(ref, None, 2.0, "m"), [[0, 2], [1, 3]])
+
+
+def test_drift_hand_computed():
+    n = 201
+    ref = np.column_stack([np.arange(n, dtype=float), np.zeros(n), np.zeros(n)])
+    est = ref * [1.01, 1, 1]  # 1 % scale error -> 1 % drift
+    d = drift(est, ref, segment_lengths_m=(100,))
+    assert d.translation_pct == pytest.approx(1.0)
+    assert d.rotation_deg_per_100m == pytest.approx(0.0)
+    assert d.num_segments == 101
+    # constant yaw rate error of 0.01 deg per metre -> 1 deg / 100 m
+    est = ref.copy()
+    est[:, 2] = np.deg2rad(0.01 * np.arange(n))
+    d = drift(est, ref, segment_lengths_m=(50, 100))
+    assert d.rotation_deg_per_100m == pytest.approx(1.0)
+    assert d.per_length[50.0][2] == 151
+    assert np.isnan(drift(est, ref, segment_lengths_m=(500,)).translation_pct)
+
+
+def test_ate_and_rpe_match_evo_on_planar_trajectory():
+    import evo.main_ape as main_ape
+    import evo.main_rpe as main_rpe
+    from evo.core import metrics, trajectory
+    from evo.core.units import Unit
+
+    ref = _circle(300)
+    est = _noisy(ref, seed=1)
+    # rotate+shift the estimate so alignment matters
+    est_poses = np.stack([se2_to_matrix(7.0, -3.0, 0.4) @ p for p in _poses(est)])
+    ref_poses = _poses(ref)
+    t = np.arange(len(ref)) * 0.1
+    ref_t = trajectory.PoseTrajectory3D(poses_se3=list(ref_poses), timestamps=t)
+    est_t = trajectory.PoseTrajectory3D(poses_se3=list(est_poses), timestamps=t)
+
+    res = main_ape.ape(
+        ref_t,
+        copy.deepcopy(est_t),
+        metrics.PoseRelation.translation_part,
+        align=True,
+        correct_scale=False,
+    )
+    ours = ate(est_poses, ref_poses, align="se2")
+    assert ours.rmse_m == pytest.approx(res.stats["rmse"], abs=1e-6)
+    assert ours.max_m == pytest.approx(res.stats["max"], abs=1e-6)
+    np.testing.assert_allclose(ours.errors_m, res.np_arrays["error_array"], atol=1e-6)
+    res = main_ape.ape(ref_t, copy.deepcopy(est_t), metrics.PoseRelation.translation_part)
+    assert ate(est_poses, ref_poses, align="none").rmse_m == pytest.approx(
+        res.stats["rmse"], abs=1e-6
+    )
+
+    for delta in (1, 10):
+        ours = rpe(est_poses, ref_poses, delta=delta, unit="frames")
+        for rel, value in (
+            (metrics.PoseRelation.translation_part, ours.trans_rmse_m),
+            (metrics.PoseRelation.rotation_angle_deg, ours.rot_rmse_deg),
+        ):
+            res = main_rpe.rpe(
+                copy.deepcopy(ref_t),  # evo reduces both trajectories in place
+                copy.deepcopy(est_t),
+                rel,
+                delta=delta,
+                delta_unit=Unit.frames,
+                all_pairs=True,
+            )
+            assert value == pytest.approx(res.stats["rmse"], abs=1e-6)
+
+
+def test_se2_between_inverts_compose():
+    a, b = np.array([1.0, 2.0, 0.3]), np.array([-4.0, 0.5, 2.9])
+    d = se2_between(a, b)
+    np.testing.assert_allclose(se2_to_matrix(*a) @ se2_to_matrix(*d), se2_to_matrix(*b), atol=1e-12)
+
+
+def test_bad_inputs_are_data_errors():
+    ref = _circle(10)
+    with pytest.raises(DataError, match="estimate has 9 poses but reference has 10"):
+        ate(ref[:9], ref)
+    with pytest.raises(DataError, match="expected"):
+        ate(np.zeros((3, 2)), ref[:3])
+    with pytest.raises(DataError, match="unknown alignment"):
+        ate(ref, ref, align="sim3")
+    with pytest.raises(DataError, match="needs timestamps"):
+        rpe(ref, ref, delta=1.0, unit="s")
+    with pytest.raises(DataError, match="delta must be > 0"):
+        rpe(ref, ref, delta=0, unit="m")
+    bad = ref.copy()
+    bad[3, 0] = np.nan
+    with pytest.raises(DataError, match="non-finite"):
+        ate(bad, ref)
