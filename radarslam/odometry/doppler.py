@@ -1,0 +1,480 @@
+"""Doppler ego-motion: the sensor's (or the vehicle's) velocity from radial velocities.
+
+Measurement model. A radar measures for each target the radial (Doppler) velocity
+``v_r = u . v_rel`` with ``u = (x, y) / |(x, y)|`` the line of sight in the sensor frame and
+``v_rel`` the target's velocity relative to the sensor. We always take ``v_r`` from the RAW
+velocity fields (``vx, vy``), never from the compensated ones (``vx_comp, vy_comp``): those
+already contain an ego-motion estimate and would make the fit circular.
+For a static target ``v_rel = -v_sensor``, so
+
+    v_r = -u . v_sensor                                                    (one radar)
+
+and with several radars rigidly mounted at ``ego_from_sensor_i = (R_i, t_i)`` on a vehicle
+moving with rear-axle velocity ``v`` and yaw rate ``w`` (Kellner et al., "Instantaneous ego-motion
+estimation using multiple Doppler radars", ICRA 2014):
+
+    v_sensor_i = R_i^T (v + w x t_i),   w x t = w (-t_y, t_x)
+    v_r = -(R_i u) . v - w (R_i u) . (-t_y, t_x)                           (all radars jointly)
+
+Estimation. RANSAC over minimal sets (2 points for one radar, 3 for the joint fit) rejects moving
+targets, ghosts and multipath; the consensus set is refitted by least squares (twice, re-selecting
+inliers) and the covariance is the residual variance times ``(A^T A)^-1`` (the variance is floored
+at ``noise_floor_mps**2`` so that a fit through few points does not claim impossible precision).
+
+Static ego (AutoPlace's dynamic-points-removal rule): if more than ``static_fraction`` of the points
+have ``|v_r| < static_speed_mps`` the vehicle is declared static, the static mask keeps those points
+and the velocity is 0. At walking pace a moving vehicle also satisfies the rule, so the odometry can
+ask for ``static_velocity="refit"``: the mask is the same, but the velocity is the least-squares fit
+on the masked points (about 0 when truly static, the creeping speed otherwise).
+
+Failure modes never raise: with fewer than ``min_points`` usable points, or when all usable lines of
+sight are (nearly) parallel so that the velocity is not observable, the result has ``valid=False``,
+zero velocity, a huge covariance and an all-False static mask (nothing is confirmed static). In
+the joint fit a yaw rate that the geometry cannot observe (one radar only: its ``w x t`` column is
+a combination of the other two) is held by a weak zero prior and shows up as a large yaw-rate
+variance.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from radarslam.config import StrictModel
+from radarslam.types import RadarFrame, RadarSweep
+
+#: Smallest eigenvalue of ``A^T A / n`` (directions only) below which the velocity is unobservable:
+#: about the spread of lines of sight within +-1.8 degrees.
+_MIN_DIRECTION_EIGEN = 1e-3
+#: Variance reported along unobservable directions (m/s or rad/s squared).
+_HUGE_VARIANCE = 1e6
+#: Minimal-set determinant below which a RANSAC hypothesis is skipped (near-parallel sight lines).
+_MIN_SAMPLE_DET = 0.05
+#: A yaw rate whose standard deviation (at the noise floor) exceeds this is called unobservable.
+_YAW_OBSERVABLE_SIGMA_RADPS = 0.5
+
+
+@dataclass(frozen=True)
+class SensorVelocityFit:
+    """One radar sweep's Doppler fit."""
+
+    velocity_mps: np.ndarray  # (2,) sensor velocity over ground, in the sensor frame
+    covariance: np.ndarray  # (2, 2)
+    static_mask: np.ndarray  # (N,) bool: points consistent with a static world (inliers)
+    ego_static: bool  # the static-ego rule fired
+    num_inliers: int
+    valid: bool  # False when too few points or degenerate geometry
+
+    @property
+    def speed_mps(self) -> float:
+        return float(np.linalg.norm(self.velocity_mps))
+
+
+@dataclass(frozen=True)
+class EgoMotionFit:
+    """All radars of a frame fitted jointly: the vehicle's planar velocity and yaw rate."""
+
+    velocity_mps: np.ndarray  # (2,) rear-axle forward & lateral velocity in the ego frame
+    yaw_rate_radps: float
+    covariance: np.ndarray  # (3, 3) for (vx, vy, yaw_rate)
+    static_masks: dict[str, np.ndarray]  # channel -> (N,) bool
+    ego_static: bool
+    num_inliers: int
+    valid: bool
+    num_points: int = 0  # usable points that entered the fit
+    residual_rms_mps: float = float("nan")  # RMS Doppler residual of the inliers
+    yaw_rate_observable: bool = True  # False when only the weak zero prior held the yaw rate
+    channels: tuple[str, ...] = field(default=())
+
+    @property
+    def twist(self) -> np.ndarray:
+        """(3,) (vx, vy, yaw_rate)."""
+        return np.array([self.velocity_mps[0], self.velocity_mps[1], self.yaw_rate_radps])
+
+
+class DopplerConfig(StrictModel):
+    """Settings of :class:`DopplerEstimator` (the ``doppler`` section of the odometry config)."""
+
+    #: Wider than fit_sensor_velocity's 0.2 m/s default: azimuth noise adds |v| * sin(az) * d_az to
+    #: the Doppler residual at speed, and a tight threshold then truncates (and biases) the fit.
+    inlier_threshold_mps: float = Field(0.4, gt=0)
+    #: Paper-style relative threshold tau: inlier if |residual| < tau * |v_sensor| (floored at
+    #: ``inlier_threshold_mps``). None = absolute threshold only.
+    relative_threshold: float | None = Field(None, gt=0)
+    static_speed_mps: float = Field(1.0, ge=0)
+    static_fraction: float = Field(0.5, ge=0, le=1)
+    static_velocity: Literal["zero", "refit"] = "zero"
+    iterations: int = Field(64, ge=1, le=10000)
+    min_points: int = Field(3, ge=2)
+    min_range_m: float = Field(0.5, ge=0)
+    #: Drop points whose Doppler is ambiguous (``ambig_state != 3``): their v_r may be aliased.
+    require_unambiguous: bool = True
+    noise_floor_mps: float = Field(0.05, gt=0)
+    #: Non-holonomic prior on the rear axle's lateral velocity (m/s, None = off): a car's rear axle
+    #: does not slide sideways, which makes the yaw rate observable from a single radar.
+    lateral_velocity_sigma_mps: float | None = Field(None, gt=0)
+    #: Weak prior keeping an unobservable yaw rate at 0 (rad/s).
+    yaw_rate_prior_sigma_radps: float = Field(10.0, gt=0)
+    seed: int = 0
+
+
+# --- single sweep ----------------------------------------------------------------------------
+
+
+def _as_rng(rng) -> np.random.Generator:
+    if isinstance(rng, np.random.Generator):
+        return rng
+    return np.random.default_rng(0 if rng is None else rng)
+
+
+def _threshold(
+    speed: np.ndarray, inlier_threshold_mps: float, relative_threshold: float | None
+) -> np.ndarray:
+    if relative_threshold is None:
+        return np.full_like(speed, inlier_threshold_mps)
+    return np.maximum(relative_threshold * speed, inlier_threshold_mps)
+
+
+def _lstsq_cov(
+    a: np.ndarray, b: np.ndarray, noise_floor: float, prior_info: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares ``a x = b`` (+ optional zero-mean prior information); (x, cov, residuals)."""
+    p = a.shape[1]
+    ata = a.T @ a
+    if prior_info is not None:
+        ata = ata + prior_info
+    x = np.linalg.solve(ata, a.T @ b)
+    res = b - a @ x
+    dof = len(b) - p
+    var = float(res @ res) / dof if dof > 0 else 0.0
+    var = max(var, noise_floor**2)
+    cov = var * np.linalg.inv(ata)
+    return x, 0.5 * (cov + cov.T), res
+
+
+def _invalid_sensor_fit(n: int) -> SensorVelocityFit:
+    return SensorVelocityFit(
+        velocity_mps=np.zeros(2),
+        covariance=np.eye(2) * _HUGE_VARIANCE,
+        static_mask=np.zeros(n, dtype=bool),
+        ego_static=False,
+        num_inliers=0,
+        valid=False,
+    )
+
+
+def _observable(a: np.ndarray) -> bool:
+    if len(a) < 2:
+        return False
+    eig = np.linalg.eigvalsh(a.T @ a / len(a))
+    return bool(eig[0] > _MIN_DIRECTION_EIGEN)
+
+
+def fit_sensor_velocity(
+    directions: np.ndarray,
+    radial_velocity_mps: np.ndarray,
+    *,
+    inlier_threshold_mps: float = 0.2,
+    relative_threshold: float | None = None,
+    static_speed_mps: float = 1.0,
+    static_fraction: float = 0.5,
+    iterations: int = 64,
+    min_points: int = 2,
+    rng=None,
+    static_velocity: Literal["zero", "refit"] = "zero",
+    noise_floor_mps: float = 0.05,
+    usable: np.ndarray | None = None,
+) -> SensorVelocityFit:
+    """Fit one radar's velocity over ground (sensor frame) to its points' Doppler.
+
+    ``directions`` (N, 2) are lines of sight (normalised here), ``radial_velocity_mps`` (N,) the raw
+    Doppler ``u . (vx, vy)``. ``usable`` (N,) optionally excludes points from the fit (they get
+    ``static_mask=False``). Deterministic for a given ``rng`` (Generator or seed; None = seed 0).
+    """
+    u = np.asarray(directions, dtype=np.float64).reshape(-1, 2)
+    vr = np.asarray(radial_velocity_mps, dtype=np.float64).reshape(-1)
+    n = len(u)
+    if len(vr) != n:
+        raise ValueError(f"{n} directions but {len(vr)} radial velocities")
+    norm = np.linalg.norm(u, axis=1)
+    ok = np.isfinite(vr) & np.isfinite(norm) & (norm > 1e-9)
+    if usable is not None:
+        ok &= np.asarray(usable, dtype=bool).reshape(-1)
+    idx = np.flatnonzero(ok)
+    if len(idx) < max(min_points, 1):
+        return _invalid_sensor_fit(n)
+    a = u[idx] / norm[idx, None]
+    b = -vr[idx]  # a @ v_sensor = -v_r for static targets
+
+    # Static-ego rule (AutoPlace DPR).
+    slow = np.abs(vr[idx]) < static_speed_mps
+    if slow.sum() > static_fraction * len(idx) and slow.sum() >= 1:
+        mask = np.zeros(n, dtype=bool)
+        mask[idx[slow]] = True
+        a_s, b_s = a[slow], b[slow]
+        if static_velocity == "refit" and _observable(a_s) and len(a_s) >= min_points:
+            v, cov, _ = _lstsq_cov(a_s, b_s, noise_floor_mps)
+        else:
+            v = np.zeros(2)
+            var = max(float(np.mean(b_s**2)), noise_floor_mps**2)
+            ata = a_s.T @ a_s
+            # A zero velocity is asserted by the rule, not estimated: its precision still follows
+            # the geometry, inflated where it cannot observe anything.
+            cov = var * np.linalg.inv(ata + np.eye(2) * (var / _HUGE_VARIANCE))
+        return SensorVelocityFit(v, cov, mask, True, int(slow.sum()), True)
+
+    if not _observable(a):
+        return _invalid_sensor_fit(n)
+
+    # RANSAC over 2-point minimal sets, all hypotheses at once.
+    gen = _as_rng(rng)
+    m = len(a)
+    i = gen.integers(0, m, size=iterations)
+    j = gen.integers(0, m - 1, size=iterations)
+    j = j + (j >= i)  # distinct pairs
+    a1, a2 = a[i], a[j]
+    det = a1[:, 0] * a2[:, 1] - a1[:, 1] * a2[:, 0]
+    good = np.abs(det) > _MIN_SAMPLE_DET
+    best_v = None
+    if good.any():
+        d = det[good]
+        b1, b2 = b[i[good]], b[j[good]]
+        # Cramer's rule for [a1; a2] v = [b1; b2].
+        vx = (b1 * a2[good, 1] - b2 * a1[good, 1]) / d
+        vy = (a1[good, 0] * b2 - a2[good, 0] * b1) / d
+        hyp = np.stack([vx, vy], axis=1)  # (K, 2)
+        res = np.abs(a @ hyp.T - b[:, None])  # (m, K)
+        thr = _threshold(np.linalg.norm(hyp, axis=1), inlier_threshold_mps, relative_threshold)
+        counts = (res < thr[None, :]).sum(axis=0)
+        best_v = hyp[int(np.argmax(counts))]
+    if best_v is None:
+        best_v, _, _ = _lstsq_cov(a, b, noise_floor_mps)
+
+    inl = _inliers_2d(a, b, best_v, inlier_threshold_mps, relative_threshold)
+    v, cov = best_v, np.eye(2) * _HUGE_VARIANCE
+    for _ in range(2):
+        if inl.sum() < max(min_points, 2) or not _observable(a[inl]):
+            return _invalid_sensor_fit(n)
+        v, cov, _ = _lstsq_cov(a[inl], b[inl], noise_floor_mps)
+        inl = _inliers_2d(a, b, v, inlier_threshold_mps, relative_threshold)
+    mask = np.zeros(n, dtype=bool)
+    mask[idx[inl]] = True
+    return SensorVelocityFit(v, cov, mask, False, int(inl.sum()), True)
+
+
+def _inliers_2d(a, b, v, thr_abs, rel) -> np.ndarray:
+    thr = _threshold(np.array([np.linalg.norm(v)]), thr_abs, rel)[0]
+    return np.abs(a @ v - b) < thr
+
+
+# --- estimator on sweeps and frames ----------------------------------------------------------
+
+
+def sweep_doppler(sweep: RadarSweep) -> tuple[np.ndarray, np.ndarray]:
+    """(directions (N, 2), raw radial velocity (N,)) of a sweep, from the RAW velocity fields."""
+    return sweep.unit_directions, sweep.radial_velocity
+
+
+class DopplerEstimator:
+    """Doppler velocity fits of sweeps (one radar) and frames (all radars jointly)."""
+
+    def __init__(self, config: DopplerConfig | None = None):
+        self.config = config or DopplerConfig()
+
+    def _usable(self, sweep: RadarSweep) -> np.ndarray:
+        pts = sweep.points
+        r = np.hypot(pts["x"].astype(np.float64), pts["y"].astype(np.float64))
+        ok = np.isfinite(r) & (r > max(self.config.min_range_m, 1e-6))
+        ok &= np.isfinite(pts["vx"]) & np.isfinite(pts["vy"])
+        if self.config.require_unambiguous:
+            ok &= pts["ambig_state"] == 3
+        return ok
+
+    def fit_sweep(self, sweep: RadarSweep) -> SensorVelocityFit:
+        c = self.config
+        u, vr = sweep_doppler(sweep)
+        return fit_sensor_velocity(
+            u,
+            vr,
+            inlier_threshold_mps=c.inlier_threshold_mps,
+            relative_threshold=c.relative_threshold,
+            static_speed_mps=c.static_speed_mps,
+            static_fraction=c.static_fraction,
+            iterations=c.iterations,
+            min_points=max(2, c.min_points - 1),
+            rng=c.seed,
+            static_velocity=c.static_velocity,
+            noise_floor_mps=c.noise_floor_mps,
+            usable=self._usable(sweep),
+        )
+
+    def fit_frame(self, frame: RadarFrame | Sequence[RadarSweep]) -> EgoMotionFit:
+        sweeps: Sequence[RadarSweep]
+        if isinstance(frame, RadarFrame):
+            sweeps = list(frame.sweeps.values())
+        else:
+            sweeps = list(frame)
+        rows, rhs, lever, owner = [], [], [], []
+        sizes: dict[str, int] = {}
+        for k, sw in enumerate(sweeps):
+            n = len(sw)
+            sizes[sw.channel] = n
+            if n == 0:
+                continue
+            u, vr = sweep_doppler(sw)
+            ok = self._usable(sw) & np.isfinite(vr)
+            if not ok.any():
+                continue
+            rot = np.asarray(sw.ego_from_sensor, dtype=np.float64)[:2, :2]
+            t = np.asarray(sw.ego_from_sensor, dtype=np.float64)[:2, 3]
+            ue = u[ok] @ rot.T  # lines of sight in the ego frame
+            perp = np.array([-t[1], t[0]])
+            rows.append(np.column_stack([ue, ue @ perp]))
+            rhs.append(-vr[ok])
+            lever.append(np.broadcast_to(perp, (int(ok.sum()), 2)))
+            owner.append(np.column_stack([np.full(int(ok.sum()), k), np.flatnonzero(ok)]))
+        channels = tuple(sw.channel for sw in sweeps)
+        if not rows:
+            return self._invalid_frame(sizes, channels, 0)
+        a = np.concatenate(rows)
+        b = np.concatenate(rhs)
+        perp_all = np.concatenate(lever)
+        own = np.concatenate(owner)
+        inl, x, cov, ego_static, yaw_obs = self._solve_joint(a, b, perp_all)
+        if x is None:
+            return self._invalid_frame(sizes, channels, len(a))
+        masks = {sw.channel: np.zeros(len(sw), dtype=bool) for sw in sweeps}
+        for k, sw in enumerate(sweeps):
+            sel = inl & (own[:, 0] == k)
+            masks[sw.channel][own[sel, 1]] = True
+        res = a[inl] @ x - b[inl]
+        return EgoMotionFit(
+            velocity_mps=x[:2].copy(),
+            yaw_rate_radps=float(x[2]),
+            covariance=cov,
+            static_masks=masks,
+            ego_static=ego_static,
+            num_inliers=int(inl.sum()),
+            valid=True,
+            num_points=len(a),
+            residual_rms_mps=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"),
+            yaw_rate_observable=yaw_obs,
+            channels=channels,
+        )
+
+    def _invalid_frame(
+        self, sizes: Mapping[str, int], channels: tuple[str, ...], num_points: int
+    ) -> EgoMotionFit:
+        return EgoMotionFit(
+            velocity_mps=np.zeros(2),
+            yaw_rate_radps=0.0,
+            covariance=np.eye(3) * _HUGE_VARIANCE,
+            static_masks={ch: np.zeros(n, dtype=bool) for ch, n in sizes.items()},
+            ego_static=False,
+            num_inliers=0,
+            valid=False,
+            num_points=num_points,
+            yaw_rate_observable=False,
+            channels=channels,
+        )
+
+    def _prior(self) -> np.ndarray:
+        c = self.config
+        info = np.zeros((3, 3))
+        info[2, 2] = 1.0 / c.yaw_rate_prior_sigma_radps**2
+        if c.lateral_velocity_sigma_mps is not None:
+            info[1, 1] = 1.0 / c.lateral_velocity_sigma_mps**2
+        return info
+
+    def _solve(self, a: np.ndarray, b: np.ndarray):
+        """Least squares with the priors scaled to the residual variance (information form)."""
+        c = self.config
+        prior = self._prior()
+        # First pass fixes the residual variance, which the priors (given in physical sigmas) must
+        # be expressed against, since _lstsq_cov multiplies (A^T A + P)^-1 by that variance.
+        x, _, res = _lstsq_cov(a, b, c.noise_floor_mps, prior_info=prior * c.noise_floor_mps**2)
+        dof = len(b) - 3
+        var = max(float(res @ res) / dof if dof > 0 else 0.0, c.noise_floor_mps**2)
+        ata = a.T @ a + prior * var
+        x = np.linalg.solve(ata, a.T @ b)
+        cov = var * np.linalg.inv(ata)
+        return x, 0.5 * (cov + cov.T)
+
+    def _observability(self, a: np.ndarray) -> tuple[bool, bool]:
+        """(velocity observable, yaw rate observable) from the geometry and the lateral prior."""
+        if len(a) < 2 or not _observable(a[:, :2]):
+            return False, False
+        c = self.config
+        # Information of the data at the noise floor plus the lateral prior (not the weak yaw
+        # prior, which exists only to keep an unobservable yaw rate finite).
+        info = a.T @ a / c.noise_floor_mps**2
+        if c.lateral_velocity_sigma_mps is not None:
+            info[1, 1] += 1.0 / c.lateral_velocity_sigma_mps**2
+        # Yaw-rate information left once (vx, vy) are estimated (Schur complement).
+        schur = info[2, 2] - info[2, :2] @ np.linalg.solve(info[:2, :2], info[:2, 2])
+        return True, bool(schur > 1.0 / _YAW_OBSERVABLE_SIGMA_RADPS**2)
+
+    def _solve_joint(self, a: np.ndarray, b: np.ndarray, perp: np.ndarray):
+        c = self.config
+        n = len(a)
+        if n < c.min_points:
+            return None, None, None, False, False
+        slow = np.abs(b) < c.static_speed_mps
+        if slow.sum() > c.static_fraction * n:
+            a_s, b_s = a[slow], b[slow]
+            vel_ok, yaw_ok = self._observability(a_s)
+            if c.static_velocity == "refit" and vel_ok and len(a_s) >= c.min_points:
+                x, cov = self._solve(a_s, b_s)
+            else:
+                x = np.zeros(3)
+                var = max(float(np.mean(b_s**2)), c.noise_floor_mps**2)
+                ata = a_s.T @ a_s + self._prior() * var + np.eye(3) * (var / _HUGE_VARIANCE)
+                cov = var * np.linalg.inv(ata)
+                cov = 0.5 * (cov + cov.T)
+            return slow, x, cov, True, yaw_ok
+        vel_ok, yaw_ok = self._observability(a)
+        if not vel_ok:
+            return None, None, None, False, False
+
+        def inliers(x: np.ndarray) -> np.ndarray:
+            # Per point, the sensor speed |v + w x t_i| sets the relative threshold.
+            speed = np.linalg.norm(x[:2] + x[2] * perp, axis=1)
+            thr = _threshold(speed, c.inlier_threshold_mps, c.relative_threshold)
+            return np.abs(a @ x - b) < thr
+
+        gen = np.random.default_rng(c.seed)
+        k = c.iterations
+        # 3-point minimal sets (or 2 with the yaw rate at 0 when it is not observable).
+        p = 3 if yaw_ok else 2
+        if n < p:
+            return None, None, None, False, False
+        samples = np.stack([gen.choice(n, size=p, replace=False) for _ in range(k)])
+        best_x, best_count = None, -1
+        am = a[samples][:, :, :p]  # (k, p, p)
+        bm = b[samples]
+        dets = np.linalg.det(am)
+        good = np.abs(dets) > _MIN_SAMPLE_DET * (1.0 if p == 2 else 0.5)
+        if good.any():
+            hyp = np.linalg.solve(am[good], bm[good][..., None])[..., 0]
+            if p == 2:
+                hyp = np.column_stack([hyp, np.zeros(len(hyp))])
+            speed = np.linalg.norm(hyp[None, :, :2] + hyp[None, :, 2:3] * perp[:, None, :], axis=2)
+            thr = _threshold(speed, c.inlier_threshold_mps, c.relative_threshold)
+            counts = (np.abs(a @ hyp.T - b[:, None]) < thr).sum(axis=0)
+            best = int(np.argmax(counts))
+            best_x, best_count = hyp[best], counts[best]
+        if best_x is None or best_count < p:
+            best_x, _ = self._solve(a, b)
+        inl = inliers(best_x)
+        x, cov = best_x, np.eye(3) * _HUGE_VARIANCE
+        for _ in range(2):
+            if inl.sum() < c.min_points or not self._observability(a[inl])[0]:
+                return None, None, None, False, False
+            x, cov = self._solve(a[inl], b[inl])
+            inl = inliers(x)
+        yaw_ok = self._observability(a[inl])[1]
+        return inl, x, cov, False, yaw_ok
