@@ -1,0 +1,589 @@
+"""Reading the five nuScenes radars without the devkit: sweeps, synchronised frames, accumulation.
+
+:class:`NuScenesRadar` reads ``DATAROOT/<version>/*.json`` lazily (see :mod:`.tables`) and the radar
+``.pcd`` files with :mod:`.pcd`. Points are returned in their sensor frame with the calibration
+(``ego_from_sensor``) and the ground-truth ego pose of that very sample_data (``world_from_ego``).
+
+Documented skips (never errors): points with a NaN/inf field are dropped, and a sweep with no
+(finite) point is returned as a :class:`RadarSweep` with 0 points. Both are counted in
+``reader.skip_counts`` and logged once per scene (logger ``radarslam.nuscenes``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from radarslam.errors import DataError
+from radarslam.geometry import invert
+from radarslam.nuscenes.filters import RadarPointFilter
+from radarslam.nuscenes.pcd import read_pcd
+from radarslam.nuscenes.tables import NuScenesTables
+from radarslam.types import (
+    ACCUMULATED_DTYPE,
+    RADAR_CHANNELS,
+    AccumulatedCloud,
+    RadarFrame,
+    RadarSweep,
+    SceneInfo,
+)
+
+log = logging.getLogger("radarslam.nuscenes")
+
+_FLOAT_FIELDS = ("x", "y", "z", "rcs", "vx", "vy", "vx_comp", "vy_comp")
+#: Nominal ARS408 sweep period (13 Hz), used when a scene has too few sweeps to measure it.
+NOMINAL_PERIOD_US = 76_923
+
+
+@dataclass
+class SkipCounts:
+    """What the reader skipped instead of failing (totals, and per scene name)."""
+
+    nan_points: int = 0  # points dropped because a float field was NaN/inf
+    empty_sweeps: int = 0  # sweeps with no finite point (yielded with 0 points)
+    per_scene: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def add(self, scene: str, nan_points: int, empty: bool) -> None:
+        if not nan_points and not empty:
+            return
+        self.nan_points += nan_points
+        self.empty_sweeps += int(empty)
+        d = self.per_scene.setdefault(scene, {"nan_points": 0, "empty_sweeps": 0})
+        d["nan_points"] += nan_points
+        d["empty_sweeps"] += int(empty)
+
+
+def _channel_index(channel: str) -> int:
+    try:
+        return RADAR_CHANNELS.index(channel)
+    except ValueError:
+        raise DataError(
+            f"unknown radar channel {channel!r}; expected one of {RADAR_CHANNELS}"
+        ) from None
+
+
+class NuScenesRadar:
+    """The radar side of one nuScenes version under ``dataroot`` (real or synthetic).
+
+    ``filters`` (a :class:`RadarPointFilter`) is applied to every sweep the reader returns unless a
+    method is given its own; the default is the devkit's (invalid_state 0, dyn_prop 0..6,
+    ambig_state 3). ``use_cache``/``cache_dir``: see :class:`NuScenesTables`.
+    """
+
+    def __init__(
+        self,
+        dataroot: str | Path,
+        version: str = "v1.0-mini",
+        filters: RadarPointFilter | None = None,
+        *,
+        use_cache: bool = True,
+        cache_dir: str | Path | None = None,
+    ):
+        self.filters = RadarPointFilter.devkit_default() if filters is None else filters
+        if not isinstance(self.filters, RadarPointFilter):
+            raise TypeError(f"filters must be a RadarPointFilter, got {type(filters).__name__}")
+        self.tables = NuScenesTables(dataroot, version, use_cache=use_cache, cache_dir=cache_dir)
+        self.dataroot = self.tables.dataroot
+        self.version = version
+        self.skip_counts = SkipCounts()
+        self._ego_from_sensor: dict[int, np.ndarray] = {}
+        self._groups: tuple[np.ndarray, np.ndarray] | None = None
+        self._keyframes: dict[int, dict[int, int]] | None = None
+        self._scene_infos: list[SceneInfo] | None = None
+
+    # ---- scenes ------------------------------------------------------------------------------
+    def scenes(self) -> list[SceneInfo]:
+        """All scenes, in scene.json order."""
+        if self._scene_infos is None:
+            small = self.tables.small
+            out = []
+            for rec in small.scenes:
+                lg = small.logs[rec["log_token"]]
+                out.append(
+                    SceneInfo(
+                        name=rec["name"],
+                        token=rec["token"],
+                        log_token=rec["log_token"],
+                        location=lg["location"],
+                        date_captured=str(lg["date_captured"]),
+                        vehicle=str(lg.get("vehicle", "")),
+                        nbr_samples=int(rec.get("nbr_samples", 0)),
+                        first_sample_token=rec["first_sample_token"],
+                        last_sample_token=rec["last_sample_token"],
+                        description=str(rec.get("description", "")),
+                    )
+                )
+            self._scene_infos = out
+        return list(self._scene_infos)
+
+    def scene(self, name: str | SceneInfo) -> SceneInfo:
+        if isinstance(name, SceneInfo):
+            return name
+        row = self.tables.small.scene_row.get(name)
+        if row is None:
+            names = [s.name for s in self.scenes()]
+            few = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+            raise DataError(
+                f"unknown scene {name!r} in {self.tables.table_dir}; "
+                f"{len(names)} scenes, e.g. {few or 'none'}"
+            )
+        return self.scenes()[row]
+
+    def scene_start_us(self, scene: str | SceneInfo) -> int:
+        info = self.scene(scene)
+        small = self.tables.small
+        return int(small.sample_timestamp_us[small.sample_row[info.first_sample_token]])
+
+    def locations(self) -> list[str]:
+        return sorted({s.location for s in self.scenes()})
+
+    def scenes_for_location(
+        self, location: str, dates: Iterable[str] | None = None
+    ) -> list[SceneInfo]:
+        """Scenes recorded at ``location`` (optionally only on ``dates``, YYYY-MM-DD), sorted by
+        date then start time: one call gives the session order of a multi-session run."""
+        locs = self.locations()
+        if location not in locs:
+            raise DataError(f"unknown location {location!r}; the dataset has {locs}")
+        wanted = None if dates is None else {str(d) for d in dates}
+        out = [
+            s
+            for s in self.scenes()
+            if s.location == location and (wanted is None or s.date_captured in wanted)
+        ]
+        return sorted(out, key=lambda s: (s.date_captured, self.scene_start_us(s), s.name))
+
+    def samples(self, scene: str | SceneInfo) -> list[str]:
+        """Sample tokens of a scene in time order (following ``next``)."""
+        info = self.scene(scene)
+        small = self.tables.small
+        row = small.sample_row[info.first_sample_token]
+        scene_row = small.scene_row[info.name]
+        out = []
+        while row >= 0 and small.sample_scene[row] == scene_row:
+            out.append(small.sample_token[row].decode())
+            if len(out) > len(small.sample_token):
+                raise DataError(f"{self.tables.path('sample')}: sample next-chain has a cycle")
+            row = int(small.sample_next[row])
+        return out
+
+    # ---- sweeps ------------------------------------------------------------------------------
+    def _scene_channel_rows(self, scene_row: int, ch: int) -> np.ndarray:
+        """Rows of one scene/channel in chain order (prev/next), checked to be in time order."""
+        radar = self.tables.radar
+        if self._groups is None:
+            sc = self.tables.small.sample_scene[radar.sample]
+            order = np.lexsort((radar.timestamp_us, radar.channel, sc))
+            gkey = sc[order].astype(np.int64) * 16 + radar.channel[order]
+            self._groups = (order, gkey)
+        order, gkey = self._groups
+        k = scene_row * 16 + ch
+        lo, hi = np.searchsorted(gkey, k, "left"), np.searchsorted(gkey, k, "right")
+        members = order[lo:hi]
+        if len(members) == 0:
+            return members
+        member_set = set(members.tolist())
+        heads = [int(r) for r in members if int(radar.prev[r]) not in member_set]
+        heads.sort(key=lambda r: int(radar.timestamp_us[r]))
+        rows: list[int] = []
+        for h in heads:
+            r = h
+            while r >= 0 and r in member_set:
+                rows.append(r)
+                member_set.discard(r)
+                r = int(radar.next[r])
+        if member_set or len(rows) != len(members):
+            raise DataError(
+                f"{self.tables.path('sample_data')}: the prev/next chain of "
+                f"{RADAR_CHANNELS[ch]} in scene {self.tables.small.scenes[scene_row]['name']!r} "
+                f"has a cycle"
+            )
+        out = np.asarray(rows, dtype=np.int64)
+        if len(heads) > 1:
+            log.warning(
+                "%s of scene %s: prev/next chain is broken into %d pieces; joined in time order",
+                RADAR_CHANNELS[ch],
+                self.tables.small.scenes[scene_row]["name"],
+                len(heads),
+            )
+        ts = radar.timestamp_us[out]
+        if len(ts) > 1 and (np.diff(ts) <= 0).any():
+            i = int(np.flatnonzero(np.diff(ts) <= 0)[0])
+            raise DataError(
+                f"{self.tables.path('sample_data')}: {RADAR_CHANNELS[ch]} sweep "
+                f"{radar.token[out[i + 1]].decode()!r} is not later than its prev"
+            )
+        return out
+
+    def _rows(self, scene: str | SceneInfo, channel: str) -> np.ndarray:
+        info = self.scene(scene)
+        return self._scene_channel_rows(
+            self.tables.small.scene_row[info.name], _channel_index(channel)
+        )
+
+    def _sweep(
+        self,
+        row: int,
+        filters: RadarPointFilter | None = None,
+        scene_name: str | None = None,
+    ) -> RadarSweep:
+        tables = self.tables
+        radar = tables.radar
+        filename = radar.filename[row].decode("utf-8")
+        points = read_pcd(self.dataroot / filename)
+        empty = len(points) == 0
+        nan_dropped = 0
+        if len(points):
+            finite = np.ones(len(points), dtype=bool)
+            for name in _FLOAT_FIELDS:
+                finite &= np.isfinite(points[name])
+            if not finite.all():
+                nan_dropped = int((~finite).sum())
+                points = points[finite]
+                empty = len(points) == 0
+        if nan_dropped or empty:
+            if scene_name is None:
+                small = tables.small
+                scene_name = small.scenes[small.sample_scene[radar.sample[row]]]["name"]
+            self.skip_counts.add(scene_name, nan_dropped, empty)
+        points = (self.filters if filters is None else filters).apply(points)
+        cs = int(radar.calibrated_sensor[row])
+        ego_from_sensor = self._ego_from_sensor.get(cs)
+        if ego_from_sensor is None:
+            ego_from_sensor = self._ego_from_sensor[cs] = tables.ego_from_sensor(cs)
+        return RadarSweep(
+            channel=RADAR_CHANNELS[int(radar.channel[row])],
+            timestamp_us=int(radar.timestamp_us[row]),
+            points=points,
+            ego_from_sensor=ego_from_sensor.copy(),
+            world_from_ego=tables.world_from_ego(row),
+            is_key_frame=bool(radar.is_key_frame[row]),
+            token=radar.token[row].decode(),
+            sample_token=tables.small.sample_token[radar.sample[row]].decode(),
+            filename=filename,
+        )
+
+    def _row_of(self, sample_data_token: str) -> int:
+        row = self.tables.radar_tokens.find(sample_data_token)
+        if row < 0:
+            raise DataError(
+                f"sample_data token {sample_data_token!r} is not a radar record of "
+                f"{self.tables.path('sample_data')}"
+            )
+        return row
+
+    def load_sweep(
+        self, sample_data_token: str, filters: RadarPointFilter | None = None
+    ) -> RadarSweep:
+        """One radar sweep by its sample_data token (reader's filters unless ``filters``)."""
+        return self._sweep(self._row_of(sample_data_token), filters)
+
+    def _report_skips(self, scene_name: str, before: dict[str, int] | None) -> None:
+        now = self.skip_counts.per_scene.get(scene_name)
+        if now is None:
+            return
+        before = before or {"nan_points": 0, "empty_sweeps": 0}
+        d_nan = now["nan_points"] - before["nan_points"]
+        d_empty = now["empty_sweeps"] - before["empty_sweeps"]
+        if d_nan or d_empty:
+            log.warning(
+                "scene %s: %d empty sweep(s) yielded with 0 points, %d point(s) with NaN fields "
+                "dropped",
+                scene_name,
+                d_empty,
+                d_nan,
+            )
+
+    def iter_sweeps(
+        self,
+        scene: str | SceneInfo,
+        channel: str,
+        key_frames_only: bool = False,
+        filters: RadarPointFilter | None = None,
+    ) -> Iterator[RadarSweep]:
+        """The sweeps of one radar in a scene, following the sample_data prev/next chain (time
+        order). Points are in the sensor frame, after the reader's filters (or ``filters``)."""
+        info = self.scene(scene)
+        rows = self._rows(info, channel)
+        if key_frames_only:
+            rows = rows[self.tables.radar.is_key_frame[rows]]
+        before = dict(self.skip_counts.per_scene.get(info.name, {})) or None
+        for r in rows:
+            yield self._sweep(int(r), filters, info.name)
+        self._report_skips(info.name, before)
+
+    def sweep_tokens(self, scene: str | SceneInfo, channel: str) -> list[str]:
+        """sample_data tokens of one radar in a scene, in time order (no file is read)."""
+        return [self.tables.radar.token[r].decode() for r in self._rows(scene, channel)]
+
+    # ---- frames ------------------------------------------------------------------------------
+    def _keyframe_rows(self) -> dict[int, dict[int, int]]:
+        """sample row -> {channel index: key-frame sample_data row}."""
+        if self._keyframes is None:
+            radar = self.tables.radar
+            out: dict[int, dict[int, int]] = {}
+            for r in np.flatnonzero(radar.is_key_frame):
+                out.setdefault(int(radar.sample[r]), {})[int(radar.channel[r])] = int(r)
+            self._keyframes = out
+        return self._keyframes
+
+    def frame_groups(
+        self,
+        scene: str | SceneInfo,
+        ref_channel: str = "RADAR_FRONT",
+        sync_tolerance_us: int | None = None,
+    ) -> list[dict[str, str]]:
+        """The grouping :meth:`iter_frames` uses, as lists of {channel: sample_data token}, anchor
+        channel first (no file is read)."""
+        return [
+            {RADAR_CHANNELS[c]: self.tables.radar.token[r].decode() for c, r in g}
+            for g in self._group_rows(self.scene(scene), ref_channel, sync_tolerance_us)
+        ]
+
+    def _group_rows(
+        self, info: SceneInfo, ref_channel: str, sync_tolerance_us: int | None
+    ) -> list[list[tuple[int, int]]]:
+        radar = self.tables.radar
+        ref = _channel_index(ref_channel)
+        priority = [ref] + [c for c in range(len(RADAR_CHANNELS)) if c != ref]
+        scene_row = self.tables.small.scene_row[info.name]
+        rows = {c: self._scene_channel_rows(scene_row, c) for c in priority}
+        times = {c: radar.timestamp_us[rows[c]] for c in priority}
+        diffs = np.concatenate([np.diff(t) for t in times.values() if len(t) > 1] or [np.zeros(0)])
+        period = float(np.median(diffs)) if len(diffs) >= 3 else float(NOMINAL_PERIOD_US)
+        tol = period / 2 if sync_tolerance_us is None else float(sync_tolerance_us)
+
+        # 1. anchors: the reference channel's sweeps, then other channels' sweeps that fall in a
+        #    gap of all anchors so far (farther than 3/4 of a period from every anchor).
+        anchor_t = np.zeros(0, dtype=np.int64)
+        anchors: list[tuple[int, int]] = []  # (channel, row)
+        is_anchor = {c: np.zeros(len(rows[c]), dtype=bool) for c in priority}
+        for c in priority:
+            t = times[c]
+            if len(t) == 0:
+                continue
+            if c == ref or len(anchor_t) == 0:
+                new = np.ones(len(t), dtype=bool)
+            else:
+                pos = np.searchsorted(anchor_t, t)
+                left = np.abs(t - anchor_t[np.maximum(pos - 1, 0)])
+                right = np.abs(anchor_t[np.minimum(pos, len(anchor_t) - 1)] - t)
+                new = np.minimum(left, right) > 0.75 * period
+            is_anchor[c] = new
+            anchors += [(c, int(r)) for r in rows[c][new]]
+            anchor_t = np.sort(np.concatenate([anchor_t, t[new]]))
+        anchors.sort(key=lambda cr: int(radar.timestamp_us[cr[1]]))
+        a_time = np.array([radar.timestamp_us[r] for _, r in anchors], dtype=np.int64)
+        groups: list[list[tuple[int, int]]] = [[a] for a in anchors]
+        taken = {a: {c} for a, (c, _) in enumerate(anchors)}
+
+        # 2. every other channel: nearest sweep within tol, one-to-one, closest pairs first.
+        for c in priority:
+            t = times[c]
+            free = np.flatnonzero(~is_anchor[c])
+            if len(free) == 0 or len(a_time) == 0:
+                continue
+            pairs = []
+            for i in free:
+                lo = np.searchsorted(a_time, t[i] - tol, "left")
+                hi = np.searchsorted(a_time, t[i] + tol, "right")
+                for a in range(lo, hi):
+                    pairs.append((abs(int(a_time[a] - t[i])), a, int(i)))
+            pairs.sort()
+            used = set()
+            for _, a, i in pairs:
+                if i in used or c in taken[a]:
+                    continue
+                used.add(i)
+                taken[a].add(c)
+                groups[a].append((c, int(rows[c][i])))
+        return groups
+
+    def iter_frames(
+        self,
+        scene: str | SceneInfo,
+        key_frames_only: bool = False,
+        ref_channel: str = "RADAR_FRONT",
+        sync_tolerance_us: int | None = None,
+        filters: RadarPointFilter | None = None,
+    ) -> Iterator[RadarFrame]:
+        """Sets of the five radars' sweeps nearest in time (~13 Hz), in time order.
+
+        Grouping rule:
+
+        * Frames are anchored on the reference channel's sweeps. Where the reference channel has
+          a gap (or before its first / after its last sweep), the next channel in
+          ``RADAR_CHANNELS`` order that has sweeps there provides the anchors: a sweep becomes an
+          anchor when it is farther than 3/4 of a sweep period from every anchor chosen so far.
+        * Every other channel contributes to an anchor its sweep nearest in time if within
+          ``sync_tolerance_us`` (default: half the scene's median sweep period, ~38 ms); pairs are
+          assigned closest first, and each sweep is used at most once, so a channel whose sweep
+          has no anchor near it is just absent from ``frame.sweeps``.
+        * The frame's ``timestamp_us`` and ``world_from_ego`` are the anchor sweep's; it is a key
+          frame (with ``sample_token``) when the anchor sweep is.
+
+        ``key_frames_only=True`` instead yields one frame per sample of the scene, made of each
+        channel's key-frame sample_data, anchored on the reference channel's (or, if absent, the
+        first channel present in ``RADAR_CHANNELS`` order); samples without any radar key frame
+        are skipped.
+        """
+        info = self.scene(scene)
+        before = dict(self.skip_counts.per_scene.get(info.name, {})) or None
+        if key_frames_only:
+            yield from self._iter_key_frames(info, ref_channel, filters)
+        else:
+            for group in self._group_rows(info, ref_channel, sync_tolerance_us):
+                sweeps = [self._sweep(r, filters, info.name) for _, r in group]
+                anchor = sweeps[0]
+                yield RadarFrame(
+                    timestamp_us=anchor.timestamp_us,
+                    sweeps={
+                        s.channel: s
+                        for s in sorted(sweeps, key=lambda s: RADAR_CHANNELS.index(s.channel))
+                    },
+                    world_from_ego=anchor.world_from_ego,
+                    scene_name=info.name,
+                    is_key_frame=anchor.is_key_frame,
+                    sample_token=anchor.sample_token if anchor.is_key_frame else "",
+                )
+        self._report_skips(info.name, before)
+
+    def _iter_key_frames(
+        self, info: SceneInfo, ref_channel: str, filters: RadarPointFilter | None
+    ) -> Iterator[RadarFrame]:
+        ref = _channel_index(ref_channel)
+        priority = [ref] + [c for c in range(len(RADAR_CHANNELS)) if c != ref]
+        kf = self._keyframe_rows()
+        small = self.tables.small
+        for tok in self.samples(info):
+            chans = kf.get(small.sample_row[tok], {})
+            present = [c for c in priority if c in chans]
+            if not present:
+                continue
+            sweeps = {c: self._sweep(chans[c], filters, info.name) for c in present}
+            anchor = sweeps[present[0]]
+            yield RadarFrame(
+                timestamp_us=anchor.timestamp_us,
+                sweeps={RADAR_CHANNELS[c]: sweeps[c] for c in sorted(present)},
+                world_from_ego=anchor.world_from_ego,
+                scene_name=info.name,
+                is_key_frame=True,
+                sample_token=tok,
+            )
+
+    # ---- accumulation ------------------------------------------------------------------------
+    def accumulate(
+        self,
+        sample_token: str,
+        nsweeps: int = 7,
+        channels: Sequence[str] = RADAR_CHANNELS,
+        ref_channel: str | None = "RADAR_FRONT",
+        min_distance_m: float = 1.0,
+        point_mask: Callable[[RadarSweep], np.ndarray] | None = None,
+        filters: RadarPointFilter | None = None,
+    ) -> AccumulatedCloud:
+        """Several sweeps of several radars in one reference frame at a key frame (AutoPlace /
+        devkit ``from_file_multisweep``).
+
+        For each channel: start at the sample's key-frame sweep, follow ``prev`` back for up to
+        ``nsweeps`` sweeps (fewer at the scene start); drop points with ``|x| < min_distance_m and
+        |y| < min_distance_m`` in their own sensor frame (the devkit's ``remove_close`` square),
+        then ``point_mask(sweep)`` if given (e.g. dynamic-point removal); transform sensor ->
+        ego(t_sweep) -> world -> ego(t_ref) -> reference sensor at the key frame.
+
+        Unlike the devkit, which moves positions only, the velocity vectors (vx, vy) and
+        (vx_comp, vy_comp) are rotated into the reference frame with the points (taken as
+        (vx, vy, 0) and rotated in 3-D; the z part is dropped).
+
+        ``ref_channel=None``: the reference is the ego frame at the key-frame sweep of the first
+        of ``channels`` (in ``RADAR_CHANNELS`` order) present in the sample; that sweep's time is
+        the reference time. ``time_lag_s`` = reference time - sweep time (>= 0 for past sweeps).
+        """
+        small = self.tables.small
+        s_row = small.sample_row.get(sample_token)
+        if s_row is None:
+            raise DataError(f"sample token {sample_token!r} is not in {self.tables.path('sample')}")
+        if nsweeps < 1:
+            raise ValueError(f"nsweeps must be >= 1, got {nsweeps}")
+        ch_idx = [_channel_index(c) for c in channels]
+        kf = self._keyframe_rows().get(s_row, {})
+        if ref_channel is not None:
+            ref_c = _channel_index(ref_channel)
+            if ref_c not in kf:
+                raise DataError(f"sample {sample_token!r} has no {ref_channel} key-frame sweep")
+            ref_row = kf[ref_c]
+        else:
+            present = [c for c in sorted(ch_idx) if c in kf]
+            if not present:
+                raise DataError(
+                    f"sample {sample_token!r} has no key-frame sweep of {list(channels)}"
+                )
+            ref_row = kf[present[0]]
+        tables = self.tables
+        radar = tables.radar
+        world_from_ref = tables.world_from_ego(ref_row)
+        if ref_channel is not None:
+            world_from_ref = world_from_ref @ tables.ego_from_sensor(
+                int(radar.calibrated_sensor[ref_row])
+            )
+        ref_from_world = invert(world_from_ref)
+        ref_time_us = int(radar.timestamp_us[ref_row])
+        scene_name = small.scenes[small.sample_scene[s_row]]["name"]
+
+        parts: list[np.ndarray] = []
+        counts: dict[tuple[str, int], int] = {}
+        for c in ch_idx:
+            row = kf.get(c, -1)
+            k = 0
+            while row >= 0 and k < nsweeps:
+                sweep = self._sweep(row, filters, scene_name)
+                pts = sweep.points
+                if len(pts):
+                    close = (np.abs(pts["x"]) < min_distance_m) & (
+                        np.abs(pts["y"]) < min_distance_m
+                    )
+                    keep = ~close
+                    if point_mask is not None:
+                        m = np.asarray(point_mask(sweep))
+                        if m.dtype != bool or m.shape != (len(pts),):
+                            raise ValueError(
+                                f"point_mask must return a bool array of shape ({len(pts)},), "
+                                f"got {m.dtype} {m.shape}"
+                            )
+                        keep &= m
+                    pts = pts[keep]
+                ref_from_sensor = ref_from_world @ sweep.world_from_sensor
+                out = np.zeros(len(pts), dtype=ACCUMULATED_DTYPE)
+                if len(pts):
+                    rot = ref_from_sensor[:3, :3]
+                    xyz = np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(np.float64)
+                    xyz = xyz @ rot.T + ref_from_sensor[:3, 3]
+                    out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+                    for a, b in (("vx", "vy"), ("vx_comp", "vy_comp")):
+                        v = np.column_stack([pts[a], pts[b], np.zeros(len(pts))]).astype(np.float64)
+                        v = v @ rot.T
+                        out[a], out[b] = v[:, 0], v[:, 1]
+                    out["rcs"] = pts["rcs"]
+                    out["dyn_prop"] = pts["dyn_prop"]
+                    out["channel"] = c
+                    out["sweep"] = k
+                    out["time_lag_s"] = (ref_time_us - sweep.timestamp_us) * 1e-6
+                parts.append(out)
+                counts[(RADAR_CHANNELS[c], k)] = len(out)
+                k += 1
+                row = int(radar.prev[row])
+                if row >= 0 and small.sample_scene[radar.sample[row]] != small.sample_scene[s_row]:
+                    break  # the chain crosses a scene boundary: the scene starts here
+        points = np.concatenate(parts) if parts else np.zeros(0, dtype=ACCUMULATED_DTYPE)
+        return AccumulatedCloud(
+            points=points,
+            world_from_ref=world_from_ref,
+            ref_channel=ref_channel,
+            timestamp_us=ref_time_us,
+            sample_token=sample_token,
+            num_points_per_sweep=counts,
+        )

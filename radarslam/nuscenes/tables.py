@@ -1,0 +1,637 @@
+"""Lazy, compact loading of the nuScenes JSON tables that the radar path needs.
+
+Only ``scene``, ``sample``, ``sample_data``, ``ego_pose``, ``calibrated_sensor``, ``sensor`` and
+``log`` are read. The small ones are parsed with :mod:`json`. ``sample_data.json`` and
+``ego_pose.json`` of ``v1.0-trainval`` hold millions of records (cameras and lidar too, about 1 GB
+of text), so they are streamed in chunks: each flat ``{...}`` record is located with a regular
+expression, records of other sensors are skipped without being decoded, and only the radar
+``sample_data`` and their ego poses are kept, as numpy arrays (:class:`RadarIndex`). Tokens are
+looked up through sorted arrays (:class:`TokenIndex`): 32 bytes per record instead of a dict entry.
+
+The compact radar index can be cached on disk (``~/.cache/radarslam/nuscenes`` by default,
+``$XDG_CACHE_HOME/radarslam/nuscenes``, or ``cache_dir``), keyed by the size and mtime of every
+table file it was built from, so later start-ups on ``v1.0-trainval`` take a fraction of a second.
+Nothing is ever written inside the dataroot.
+
+What the streaming parser does not check: the content of skipped (non-radar) records beyond their
+braces. Whatever is kept is fully decoded and validated; the list structure (``[``, records
+separated by single commas, ``]``) is checked for the whole file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from radarslam.errors import DataError
+from radarslam.geometry import make_transform
+from radarslam.types import RADAR_CHANNELS
+
+log = logging.getLogger("radarslam.nuscenes")
+
+VERSIONS: tuple[str, ...] = ("v1.0-mini", "v1.0-trainval", "v1.0-test")
+TABLE_NAMES: tuple[str, ...] = (
+    "scene",
+    "sample",
+    "sample_data",
+    "ego_pose",
+    "calibrated_sensor",
+    "sensor",
+    "log",
+)
+_CACHE_FORMAT = 1
+_CHUNK_BYTES = 32 << 20
+_RECORD_RE = re.compile(rb"\{[^{}]*\}")
+_TOKEN_RE = re.compile(rb'"token"\s*:\s*"([^"]*)"')
+_WS = b" \t\r\n"
+
+
+# --------------------------------------------------------------------------------------------
+# token lookup
+# --------------------------------------------------------------------------------------------
+class TokenIndex:
+    """token -> row lookup over a fixed-width bytes array, through a sorted copy (no dict)."""
+
+    def __init__(self, tokens: np.ndarray, what: str = "token"):
+        self.tokens = tokens
+        self.order = np.argsort(tokens, kind="stable")
+        self._sorted = tokens[self.order]
+        self.what = what
+        if len(tokens) > 1:
+            dup = self._sorted[1:] == self._sorted[:-1]
+            if dup.any():
+                first = self._sorted[1:][dup][0].decode()
+                raise DataError(f"{what}: token {first!r} appears more than once")
+
+    def __len__(self) -> int:
+        return len(self.tokens)
+
+    def find_many(self, queries: np.ndarray) -> np.ndarray:
+        """Row of each query, -1 where absent (queries: bytes array)."""
+        queries = np.asarray(queries)
+        if len(self._sorted) == 0 or len(queries) == 0:
+            return np.full(len(queries), -1, dtype=np.int64)
+        if queries.dtype.kind != "S":
+            queries = queries.astype(self._sorted.dtype)
+        pos = np.searchsorted(self._sorted, queries)
+        pos_c = np.minimum(pos, len(self._sorted) - 1)
+        hit = self._sorted[pos_c] == queries
+        return np.where(hit, self.order[pos_c], -1)
+
+    def find(self, token: str) -> int:
+        try:
+            q = np.array([token.encode("ascii")])
+        except UnicodeEncodeError:
+            return -1
+        if q.dtype.itemsize > self._sorted.dtype.itemsize:
+            return -1  # longer than any stored token: cannot be one of them
+        return int(self.find_many(q)[0])
+
+
+def _bytes_array(values: list[bytes]) -> np.ndarray:
+    if not values:
+        return np.zeros(0, dtype="S1")
+    return np.array(values, dtype=bytes)
+
+
+# --------------------------------------------------------------------------------------------
+# compact records
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class RadarIndex:
+    """All radar ``sample_data`` records of a version, one row each, plus their ego poses."""
+
+    token: np.ndarray  # S, sample_data token
+    sample: np.ndarray  # int32 row in SmallTables.sample_*
+    calibrated_sensor: np.ndarray  # int32 row in SmallTables.cs_*
+    channel: np.ndarray  # int8 index into RADAR_CHANNELS
+    timestamp_us: np.ndarray  # int64
+    is_key_frame: np.ndarray  # bool
+    filename: np.ndarray  # S, relative to the dataroot
+    prev: np.ndarray  # int32 row, -1 at the start of a chain
+    next: np.ndarray  # int32 row, -1 at the end of a chain
+    ego_translation: np.ndarray  # (N, 3) float64
+    ego_rotation: np.ndarray  # (N, 4) float64, w x y z
+
+    def __len__(self) -> int:
+        return len(self.token)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.arrays().values())
+
+
+@dataclass(frozen=True, eq=False)
+class SmallTables:
+    """scene, sample, log, sensor and calibrated_sensor, in plain Python / numpy form."""
+
+    scenes: list[dict]  # scene.json records (as read)
+    logs: dict[str, dict]  # log token -> record
+    sample_token: np.ndarray  # S
+    sample_timestamp_us: np.ndarray  # int64
+    sample_scene: np.ndarray  # int32 row in scenes
+    sample_next: np.ndarray  # int32 row, -1 at the end
+    sample_row: dict[str, int]  # sample token -> row
+    cs_token: list[str]
+    cs_row: dict[str, int]
+    cs_channel: np.ndarray  # int8 RADAR_CHANNELS index, -1 for non-radar sensors
+    cs_translation: np.ndarray  # (M, 3)
+    cs_rotation: np.ndarray  # (M, 4)
+    scene_row: dict[str, int]  # scene name -> row
+
+
+# --------------------------------------------------------------------------------------------
+# JSON helpers
+# --------------------------------------------------------------------------------------------
+def _load_json_list(path: Path) -> list:
+    try:
+        with path.open("rb") as fh:
+            data = json.load(fh)
+    except FileNotFoundError:
+        raise DataError(f"{path}: table file is missing") from None
+    except json.JSONDecodeError as exc:
+        raise DataError(
+            f"{path}: corrupt JSON (line {exc.lineno} column {exc.colno}: {exc.msg})"
+        ) from None
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: corrupt JSON (not UTF-8 text)") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read table ({exc.strerror})") from None
+    if not isinstance(data, list):
+        raise DataError(f"{path}: expected a JSON list of records, got {type(data).__name__}")
+    for i, rec in enumerate(data):
+        if not isinstance(rec, dict):
+            raise DataError(f"{path}: record {i} is {type(rec).__name__}, expected an object")
+    return data
+
+
+def _field(path: Path, rec: dict, key: str, i: int | None = None):
+    try:
+        return rec[key]
+    except KeyError:
+        where = f"record {rec.get('token', i)!r}"
+        raise DataError(f"{path}: {where} has no {key!r} field") from None
+
+
+def _floats(path: Path, rec: dict, key: str, n: int) -> list[float]:
+    value = _field(path, rec, key)
+    if (
+        not isinstance(value, list)
+        or len(value) != n
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    ):
+        raise DataError(
+            f"{path}: record {rec.get('token')!r} field {key!r} is {value!r}, expected {n} numbers"
+        )
+    return value
+
+
+def _iter_records(path: Path) -> Iterator[tuple[bytes, int]]:
+    """Yield (raw bytes, byte offset) of each flat ``{...}`` record of a JSON list, streaming.
+
+    Checks the list structure (``[``, records separated by exactly one comma, ``]``) but decodes
+    nothing: the caller decides which records are worth :func:`json.loads`.
+    """
+    try:
+        fh = path.open("rb")
+    except FileNotFoundError:
+        raise DataError(f"{path}: table file is missing") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read table ({exc.strerror})") from None
+    with fh:
+        carry = b""
+        base = 0  # file offset of carry[0]
+        started = False
+        finished = False
+        while True:
+            chunk = fh.read(_CHUNK_BYTES)
+            buf = carry + chunk if carry else chunk
+            if not chunk:
+                break
+            last = buf.rfind(b"}")
+            if last < 0:
+                carry = buf
+                continue
+            body = buf[: last + 1]
+            pos = 0
+            for m in _RECORD_RE.finditer(body):
+                gap = body[pos : m.start()]
+                if not started:
+                    g = gap.strip(_WS)
+                    if g[:1] != b"[" or g[1:].strip(_WS):
+                        raise DataError(
+                            f"{path}: corrupt JSON (expected '[' before the first record, "
+                            f"byte {base + pos})"
+                        )
+                    started = True
+                elif gap.count(b",") != 1 or gap.strip(_WS + b","):
+                    raise DataError(
+                        f"{path}: corrupt JSON (unexpected {gap.strip(_WS)[:20]!r} between "
+                        f"records near byte {base + pos})"
+                    )
+                yield m.group(), base + m.start()
+                pos = m.end()
+            if pos <= last:  # a '}' the record pattern did not match: nested object or junk
+                raise DataError(
+                    f"{path}: corrupt JSON (unbalanced braces or nested object near byte "
+                    f"{base + pos})"
+                )
+            carry = buf[last + 1 :]
+            base += last + 1
+        tail = carry.strip(_WS)
+        if not started:
+            if tail.replace(b" ", b"") in (b"[]",) or re.fullmatch(rb"\[\s*\]", tail):
+                finished = True
+            else:
+                raise DataError(f"{path}: corrupt JSON (not a list of records)")
+        elif tail == b"]":
+            finished = True
+        if not finished:
+            what = "truncated" if b"]" not in tail else f"unexpected {tail[:20]!r} at the end"
+            raise DataError(f"{path}: corrupt JSON ({what}, after byte {base})")
+
+
+def _loads(path: Path, raw: bytes, offset: int) -> dict:
+    try:
+        return json.loads(raw)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: corrupt JSON in the record at byte {offset} ({exc})") from None
+
+
+# --------------------------------------------------------------------------------------------
+# the tables
+# --------------------------------------------------------------------------------------------
+def default_cache_dir() -> Path:
+    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(root) / "radarslam" / "nuscenes"
+
+
+class NuScenesTables:
+    """The radar-relevant tables of one ``DATAROOT/<version>``, loaded on first use.
+
+    ``use_cache``: read/write the compact radar index in ``cache_dir`` (never inside the dataroot).
+    The cache is only written when ``sample_data.json`` is at least ``cache_min_bytes`` large
+    (v1.0-mini parses in well under a second and needs none).
+    """
+
+    def __init__(
+        self,
+        dataroot: str | Path,
+        version: str = "v1.0-mini",
+        *,
+        use_cache: bool = True,
+        cache_dir: str | Path | None = None,
+        cache_min_bytes: int = 32 << 20,
+    ):
+        self.dataroot = Path(dataroot).expanduser()
+        self.version = version
+        if not self.dataroot.is_dir():
+            raise DataError(f"{self.dataroot}: dataroot does not exist or is not a directory")
+        if version not in VERSIONS:
+            raise DataError(f"unknown nuScenes version {version!r}; expected one of {VERSIONS}")
+        self.table_dir = self.dataroot / version
+        if not self.table_dir.is_dir():
+            present = sorted(p.name for p in self.dataroot.glob("v1.0-*") if p.is_dir())
+            raise DataError(
+                f"{self.table_dir}: version folder is missing (present: {present or 'none'})"
+            )
+        for name in TABLE_NAMES:
+            if not (self.table_dir / f"{name}.json").is_file():
+                raise DataError(f"{self.table_dir / f'{name}.json'}: table file is missing")
+        self.use_cache = use_cache
+        self.cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else None
+        self.cache_min_bytes = cache_min_bytes
+        self._small: SmallTables | None = None
+        self._radar: RadarIndex | None = None
+        self._radar_tokens: TokenIndex | None = None
+        self.cache_hit: bool | None = None  # set once the radar index is loaded
+
+    def path(self, name: str) -> Path:
+        return self.table_dir / f"{name}.json"
+
+    # ---- small tables ------------------------------------------------------------------------
+    @property
+    def small(self) -> SmallTables:
+        if self._small is None:
+            self._small = self._load_small()
+        return self._small
+
+    def _load_small(self) -> SmallTables:
+        p_scene, p_sample, p_log = self.path("scene"), self.path("sample"), self.path("log")
+        p_sensor, p_cs = self.path("sensor"), self.path("calibrated_sensor")
+        scenes = _load_json_list(p_scene)
+        logs_list = _load_json_list(p_log)
+        sensors = _load_json_list(p_sensor)
+        cs_list = _load_json_list(p_cs)
+        samples = _load_json_list(p_sample)
+
+        logs = {}
+        for rec in logs_list:
+            for key in ("location", "date_captured"):
+                _field(p_log, rec, key)
+            logs[_field(p_log, rec, "token")] = rec
+
+        scene_token_row: dict[str, int] = {}
+        scene_row: dict[str, int] = {}
+        for i, rec in enumerate(scenes):
+            for key in ("token", "name", "log_token", "first_sample_token", "last_sample_token"):
+                _field(p_scene, rec, key, i)
+            if rec["log_token"] not in logs:
+                raise DataError(
+                    f"{p_scene}: scene {rec['name']!r} refers to log {rec['log_token']!r} "
+                    f"that is not in {p_log.name}"
+                )
+            scene_token_row[rec["token"]] = i
+            if rec["name"] in scene_row:
+                raise DataError(f"{p_scene}: scene name {rec['name']!r} appears twice")
+            scene_row[rec["name"]] = i
+
+        n = len(samples)
+        s_token = []
+        s_time = np.zeros(n, dtype=np.int64)
+        s_scene = np.zeros(n, dtype=np.int32)
+        s_next_tok = []
+        for i, rec in enumerate(samples):
+            s_token.append(_field(p_sample, rec, "token", i))
+            ts = _field(p_sample, rec, "timestamp", i)
+            if not isinstance(ts, int) or isinstance(ts, bool):
+                raise DataError(
+                    f"{p_sample}: record {rec['token']!r} timestamp {ts!r} is not an int"
+                )
+            s_time[i] = ts
+            sc = _field(p_sample, rec, "scene_token", i)
+            if sc not in scene_token_row:
+                raise DataError(
+                    f"{p_sample}: sample {rec['token']!r} refers to scene {sc!r} not in scene.json"
+                )
+            s_scene[i] = scene_token_row[sc]
+            s_next_tok.append(_field(p_sample, rec, "next", i))
+        sample_row = {t: i for i, t in enumerate(s_token)}
+        if len(sample_row) != n:
+            raise DataError(f"{p_sample}: duplicate sample tokens")
+        s_next = np.full(n, -1, dtype=np.int32)
+        for i, t in enumerate(s_next_tok):
+            if t:
+                j = sample_row.get(t)
+                if j is None:
+                    raise DataError(f"{p_sample}: sample {s_token[i]!r} next {t!r} is not a sample")
+                s_next[i] = j
+        for rec in scenes:
+            for key in ("first_sample_token", "last_sample_token"):
+                if rec[key] not in sample_row:
+                    raise DataError(
+                        f"{p_scene}: scene {rec['name']!r} {key} {rec[key]!r} is not in sample.json"
+                    )
+
+        sensor_channel = {}
+        for i, rec in enumerate(sensors):
+            tok = _field(p_sensor, rec, "token", i)
+            ch = _field(p_sensor, rec, "channel", i)
+            modality = rec.get("modality", "radar" if str(ch).startswith("RADAR") else "")
+            sensor_channel[tok] = (
+                RADAR_CHANNELS.index(ch) if (modality == "radar" and ch in RADAR_CHANNELS) else -1
+            )
+        m = len(cs_list)
+        cs_token = []
+        cs_channel = np.full(m, -1, dtype=np.int8)
+        cs_t = np.zeros((m, 3))
+        cs_q = np.zeros((m, 4))
+        for i, rec in enumerate(cs_list):
+            cs_token.append(_field(p_cs, rec, "token", i))
+            st = _field(p_cs, rec, "sensor_token", i)
+            if st not in sensor_channel:
+                raise DataError(f"{p_cs}: record {rec['token']!r} sensor {st!r} not in sensor.json")
+            cs_channel[i] = sensor_channel[st]
+            if cs_channel[i] >= 0:
+                cs_t[i] = _floats(p_cs, rec, "translation", 3)
+                cs_q[i] = _floats(p_cs, rec, "rotation", 4)
+                if not np.isfinite(cs_q[i]).all() or np.linalg.norm(cs_q[i]) < 1e-9:
+                    raise DataError(f"{p_cs}: record {rec['token']!r} has a degenerate rotation")
+        return SmallTables(
+            scenes=scenes,
+            logs=logs,
+            sample_token=_bytes_array([t.encode() for t in s_token]),
+            sample_timestamp_us=s_time,
+            sample_scene=s_scene,
+            sample_next=s_next,
+            sample_row=sample_row,
+            cs_token=cs_token,
+            cs_row={t: i for i, t in enumerate(cs_token)},
+            cs_channel=cs_channel,
+            cs_translation=cs_t,
+            cs_rotation=cs_q,
+            scene_row=scene_row,
+        )
+
+    def ego_from_sensor(self, cs_row: int) -> np.ndarray:
+        s = self.small
+        return make_transform(s.cs_translation[cs_row], s.cs_rotation[cs_row])
+
+    # ---- radar index -------------------------------------------------------------------------
+    @property
+    def radar(self) -> RadarIndex:
+        if self._radar is None:
+            self._radar = self._load_radar()
+        return self._radar
+
+    @property
+    def radar_tokens(self) -> TokenIndex:
+        if self._radar_tokens is None:
+            self._radar_tokens = TokenIndex(self.radar.token, what=str(self.path("sample_data")))
+        return self._radar_tokens
+
+    def _cache_key(self) -> tuple[str, Path]:
+        parts = [f"format={_CACHE_FORMAT}", str(self.table_dir.resolve())]
+        for name in TABLE_NAMES:
+            st = self.path(name).stat()
+            parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}")
+        key = hashlib.sha256("\n".join(parts).encode()).hexdigest()
+        folder = self.cache_dir or default_cache_dir()
+        return key, folder / f"{self.version}-{key[:20]}.npz"
+
+    def _load_radar(self) -> RadarIndex:
+        cache_file = None
+        key = ""
+        if self.use_cache:
+            key, cache_file = self._cache_key()
+            cached = self._read_cache(cache_file, key)
+            if cached is not None:
+                self.cache_hit = True
+                return cached
+        self.cache_hit = False
+        index = self._build_radar()
+        if (
+            cache_file is not None
+            and self.path("sample_data").stat().st_size >= self.cache_min_bytes
+        ):
+            self._write_cache(cache_file, key, index)
+        return index
+
+    def _read_cache(self, cache_file: Path, key: str) -> RadarIndex | None:
+        if not cache_file.is_file():
+            return None
+        try:
+            with np.load(cache_file, allow_pickle=False) as z:
+                if str(z["key"]) != key:
+                    return None
+                arrays = {f.name: z[f.name] for f in fields(RadarIndex)}
+            return RadarIndex(**arrays)
+        except Exception as exc:  # a damaged cache is rebuilt, never fatal
+            log.warning("ignoring unreadable radar index cache %s (%s)", cache_file, exc)
+            return None
+
+    def _write_cache(self, cache_file: Path, key: str, index: RadarIndex) -> None:
+        from radarslam.io.atomic import atomic_open
+
+        try:
+            with atomic_open(cache_file, "wb") as fh:
+                np.savez(fh, key=np.array(key), **index.arrays())
+        except OSError as exc:  # a read-only home must not stop the reader
+            log.warning("could not write the radar index cache %s (%s)", cache_file, exc)
+
+    def _build_radar(self) -> RadarIndex:
+        small = self.small
+        p_sd = self.path("sample_data")
+        p_ego = self.path("ego_pose")
+        cs_radar = {t: i for i, t in enumerate(small.cs_token) if small.cs_channel[i] >= 0}
+
+        tok, prev, nxt, ego, fname = [], [], [], [], []
+        sample_rows, cs_rows, stamps, keyf = [], [], [], []
+        for raw, offset in _iter_records(p_sd):
+            if b"RADAR_" not in raw:  # cameras and lidar: never decoded
+                continue
+            rec = _loads(p_sd, raw, offset)
+            cs_tok = _field(p_sd, rec, "calibrated_sensor_token")
+            cs_i = cs_radar.get(cs_tok)
+            if cs_i is None:
+                if cs_tok not in small.cs_row:
+                    raise DataError(
+                        f"{p_sd}: record {rec.get('token')!r} calibrated_sensor_token {cs_tok!r} "
+                        f"is not in calibrated_sensor.json"
+                    )
+                continue  # not a radar (a camera file named after a radar?)
+            s_tok = _field(p_sd, rec, "sample_token")
+            s_i = small.sample_row.get(s_tok)
+            if s_i is None:
+                raise DataError(
+                    f"{p_sd}: record {rec.get('token')!r} sample_token {s_tok!r} "
+                    "is not in sample.json"
+                )
+            ts = _field(p_sd, rec, "timestamp")
+            if not isinstance(ts, int) or isinstance(ts, bool):
+                raise DataError(
+                    f"{p_sd}: record {rec.get('token')!r} timestamp {ts!r} is not an int"
+                )
+            try:
+                tok.append(_field(p_sd, rec, "token").encode("ascii"))
+                prev.append(_field(p_sd, rec, "prev").encode("ascii"))
+                nxt.append(_field(p_sd, rec, "next").encode("ascii"))
+                ego.append(_field(p_sd, rec, "ego_pose_token").encode("ascii"))
+                fname.append(_field(p_sd, rec, "filename").encode("utf-8"))
+            except (AttributeError, UnicodeEncodeError):
+                raise DataError(
+                    f"{p_sd}: record {rec.get('token')!r} has a non-ASCII or non-string token"
+                ) from None
+            sample_rows.append(s_i)
+            cs_rows.append(cs_i)
+            stamps.append(ts)
+            keyf.append(bool(_field(p_sd, rec, "is_key_frame")))
+
+        n = len(tok)
+        token = _bytes_array(tok)
+        del tok
+        tindex = TokenIndex(token, what=str(p_sd))
+
+        def chain(links: list[bytes], which: str) -> np.ndarray:
+            arr = _bytes_array(links)
+            rows = tindex.find_many(arr)
+            bad = (rows < 0) & (arr != b"")
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise DataError(
+                    f"{p_sd}: radar record {token[i].decode()!r} {which} {arr[i].decode()!r} is "
+                    f"not a radar sample_data record"
+                )
+            return rows.astype(np.int32)
+
+        prev_rows = chain(prev, "prev")
+        next_rows = chain(nxt, "next")
+        del prev, nxt
+
+        ego_tok = _bytes_array(ego)
+        del ego
+        # One ego pose per sample_data in nuScenes, but tolerate sharing.
+        uniq, inverse = np.unique(ego_tok, return_inverse=True)
+        uindex = TokenIndex(uniq, what=str(p_ego))
+        u_t = np.full((len(uniq), 3), np.nan)
+        u_q = np.full((len(uniq), 4), np.nan)
+        found = np.zeros(len(uniq), dtype=bool)
+        pending_raw: list[tuple[bytes, int]] = []
+        pending_tok: list[bytes] = []
+
+        def flush() -> None:
+            if not pending_tok:
+                return
+            rows = uindex.find_many(_bytes_array(pending_tok))
+            for (raw, offset), r in zip(pending_raw, rows, strict=True):
+                if r < 0:
+                    continue
+                rec = _loads(p_ego, raw, offset)
+                u_t[r] = _floats(p_ego, rec, "translation", 3)
+                u_q[r] = _floats(p_ego, rec, "rotation", 4)
+                found[r] = True
+            pending_raw.clear()
+            pending_tok.clear()
+
+        for raw, offset in _iter_records(p_ego):
+            m = _TOKEN_RE.search(raw)
+            if m is None:
+                raise DataError(f"{p_ego}: the record at byte {offset} has no 'token' field")
+            pending_raw.append((raw, offset))
+            pending_tok.append(m.group(1))
+            if len(pending_tok) >= 65536:
+                flush()
+        flush()
+        if not found.all():
+            missing = uniq[~found][0].decode()
+            raise DataError(
+                f"{p_ego}: ego pose {missing!r} of a radar sample_data is missing "
+                f"({int((~found).sum())} missing in all)"
+            )
+        bad_q = np.linalg.norm(u_q, axis=1) < 1e-9
+        if bad_q.any() or not (np.isfinite(u_q).all() and np.isfinite(u_t).all()):
+            raise DataError(
+                f"{p_ego}: an ego pose has a degenerate or non-finite rotation/translation"
+            )
+        if n:
+            log.debug("indexed %d radar sample_data records of %s", n, self.table_dir)
+        return RadarIndex(
+            token=token,
+            sample=np.asarray(sample_rows, dtype=np.int32),
+            calibrated_sensor=np.asarray(cs_rows, dtype=np.int32),
+            channel=small.cs_channel[np.asarray(cs_rows, dtype=np.int64)].astype(np.int8)
+            if n
+            else np.zeros(0, dtype=np.int8),
+            timestamp_us=np.asarray(stamps, dtype=np.int64),
+            is_key_frame=np.asarray(keyf, dtype=bool),
+            filename=_bytes_array(fname),
+            prev=prev_rows,
+            next=next_rows,
+            ego_translation=u_t[inverse].reshape(n, 3),
+            ego_rotation=u_q[inverse].reshape(n, 4),
+        )
+
+    def world_from_ego(self, row: int) -> np.ndarray:
+        r = self.radar
+        return make_transform(r.ego_translation[row], r.ego_rotation[row])
