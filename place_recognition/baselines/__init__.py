@@ -1,0 +1,1 @@
+"""Handcrafted place-recognition baselines evaluated in the same harness as AutoPlace."""

@@ -1,0 +1,348 @@
+"""The AutoPlace dataset protocol and the prepared-data container.
+
+Split rules (reference ``split.py`` / ``split_refine.py``, autoplace.md §1.3-1.4), all pure
+functions of per-frame positions, timestamps and scene membership:
+
+1. Frames are ordered by scene (scenes in time order) then key-frame order; the first and last
+   ``edge_exclusion`` key frames of every scene belong to no set (past frames must exist).
+2. Time split: frames from a given day on (or the last fraction of capture days) are held out.
+3. Database: greedy over the remaining pool in frame order; a frame joins when its nearest DB frame
+   is more than ``db_spacing_m`` away. Training queries are the other pool frames.
+4. Every query (train / held-out) is kept only if a DB frame lies within ``pos_radius_m``.
+5. Held-out queries are split val:test = val_fraction : 1 - val_fraction with a seeded permutation.
+Positives are DB frames within ``pos_radius_m`` (distance <= radius, sklearn ``radius_neighbors``
+semantics); training negatives are DB frames farther than ``neg_radius_m``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from place_recognition.config import PrepareConfig, SplitConfig
+from radarslam.errors import ConfigError, DataError
+
+DAY_US = 86_400 * 1_000_000
+SPLIT_NAMES = ("database", "train", "val", "test")
+
+FRAMES_FILE = "frames.npz"
+IMAGES_FILE = "images.npz"
+POINTS_FILE = "points.npz"
+SPLIT_FILE = "split.npz"
+CONFIG_FILE = "config.yaml"
+
+
+# ----------------------------------------------------------------------------------------------
+# split logic
+# ----------------------------------------------------------------------------------------------
+def _check_positions(positions_xy: np.ndarray) -> np.ndarray:
+    p = np.asarray(positions_xy, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise DataError(f"positions must be (N, 2), got shape {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise DataError("positions contain NaN or infinity")
+    return p
+
+
+def scene_starts(scene_names: np.ndarray) -> np.ndarray:
+    """Index of the first frame of each frame's scene; scenes must be contiguous blocks."""
+    names = np.asarray(scene_names)
+    n = len(names)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    new = np.ones(n, bool)
+    new[1:] = names[1:] != names[:-1]
+    firsts = np.flatnonzero(new)
+    if len(set(names[firsts].tolist())) != len(firsts):
+        raise DataError("frames of one scene are not contiguous (frames must be sorted by scene)")
+    return firsts[np.cumsum(new) - 1]
+
+
+def scene_positions(scene_names: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position of each frame inside its scene, length of its scene)."""
+    starts = scene_starts(scene_names)
+    pos = np.arange(len(starts)) - starts
+    _, inverse, counts = np.unique(starts, return_inverse=True, return_counts=True)
+    return pos, counts[inverse].astype(np.int64)
+
+
+def build_sequences(scene_names: np.ndarray, seq_len: int) -> np.ndarray:
+    """(N, L) frame indices t-L+1 .. t (oldest first), clamped at the start of the scene."""
+    starts = scene_starts(scene_names)
+    t = np.arange(len(starts))
+    offsets = np.arange(-(seq_len - 1), 1)
+    return np.maximum(t[:, None] + offsets[None, :], starts[:, None]).astype(np.int64)
+
+
+def edge_mask(scene_names: np.ndarray, edge: int) -> np.ndarray:
+    """True for frames at least ``edge`` key frames away from both ends of their scene."""
+    pos, length = scene_positions(scene_names)
+    return (pos >= edge) & (pos < length - edge)
+
+
+def heldout_mask(timestamps_us: np.ndarray, cfg: SplitConfig) -> np.ndarray:
+    """True for frames in the held-out (val + test) time period."""
+    t = np.asarray(timestamps_us, dtype=np.int64)
+    if len(t) == 0:
+        return np.zeros(0, bool)
+    if cfg.time_split == "day":
+        days = (t - t.min()) // DAY_US
+        return days >= cfg.split_day
+    day = t // DAY_US  # capture (UTC) day of each frame
+    uniq = np.unique(day)
+    n_out = int(np.ceil(cfg.heldout_day_fraction * len(uniq)))
+    if n_out >= len(uniq):
+        raise DataError(
+            f"only {len(uniq)} capture day(s): heldout_day_fraction={cfg.heldout_day_fraction} "
+            "would hold out every day"
+        )
+    return day >= uniq[len(uniq) - n_out]
+
+
+def greedy_database(
+    positions_xy: np.ndarray, candidates: np.ndarray, spacing_m: float
+) -> np.ndarray:
+    """Frames (in ``candidates`` order) kept by the greedy rule: nearest DB frame > spacing_m."""
+    p = _check_positions(positions_xy)
+    cell = max(spacing_m, 1e-6)
+    grid: dict[tuple[int, int], list[int]] = {}
+    chosen: list[int] = []
+    for i in np.asarray(candidates, dtype=np.int64):
+        x, y = p[i]
+        cx, cy = int(np.floor(x / cell)), int(np.floor(y / cell))
+        too_close = False
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for j in grid.get((cx + dx, cy + dy), ()):
+                    if (p[j, 0] - x) ** 2 + (p[j, 1] - y) ** 2 <= spacing_m * spacing_m:
+                        too_close = True
+                        break
+                if too_close:
+                    break
+            if too_close:
+                break
+        if not too_close:
+            grid.setdefault((cx, cy), []).append(int(i))
+            chosen.append(int(i))
+    return np.asarray(chosen, dtype=np.int64)
+
+
+def has_neighbour(
+    positions_xy: np.ndarray, queries: np.ndarray, database: np.ndarray, radius_m: float
+) -> np.ndarray:
+    """Bool per query: some DB frame lies within ``radius_m`` (inclusive)."""
+    from scipy.spatial import cKDTree
+
+    p = _check_positions(positions_xy)
+    queries = np.asarray(queries, dtype=np.int64)
+    if len(database) == 0 or len(queries) == 0:
+        return np.zeros(len(queries), bool)
+    d, _ = cKDTree(p[database]).query(p[queries], k=1)
+    return d <= radius_m
+
+
+@dataclass(frozen=True)
+class Split:
+    splits: dict[str, np.ndarray]
+    sequences: np.ndarray
+    counts: dict[str, int]
+
+
+def make_split(
+    positions_xy: np.ndarray,
+    timestamps_us: np.ndarray,
+    scene_names: np.ndarray,
+    cfg: SplitConfig,
+) -> Split:
+    """The full AutoPlace protocol on frames sorted by scene then time."""
+    p = _check_positions(positions_xy)
+    t = np.asarray(timestamps_us, dtype=np.int64)
+    names = np.asarray(scene_names)
+    if not (len(p) == len(t) == len(names)):
+        raise DataError(f"{len(p)} positions, {len(t)} timestamps, {len(names)} scene names")
+    usable = edge_mask(names, cfg.edge_exclusion)
+    held = heldout_mask(t, cfg)
+    pool = np.flatnonzero(usable & ~held)
+    heldout = np.flatnonzero(usable & held)
+    if len(pool) == 0:
+        raise DataError("no frame left for the database/training pool (check the time split)")
+    if len(heldout) == 0:
+        raise DataError("no held-out frame for val/test (check the time split)")
+    database = greedy_database(p, pool, cfg.db_spacing_m)
+    in_db = np.zeros(len(p), bool)
+    in_db[database] = True
+    train = pool[~in_db[pool]]
+    train_kept = train[has_neighbour(p, train, database, cfg.pos_radius_m)]
+    held_kept = heldout[has_neighbour(p, heldout, database, cfg.pos_radius_m)]
+    rng = np.random.default_rng(cfg.seed)
+    perm = rng.permutation(len(held_kept))
+    n_val = int(np.rint(cfg.val_fraction * len(held_kept)))
+    val = np.sort(held_kept[perm[:n_val]])
+    test = np.sort(held_kept[perm[n_val:]])
+    splits = {"database": database, "train": train_kept, "val": val, "test": test}
+    counts = {k: len(v) for k, v in splits.items()}
+    counts.update(
+        frames=len(p),
+        edge_excluded=int((~usable).sum()),
+        pool=len(pool),
+        heldout=len(heldout),
+        train_dropped=len(train) - len(train_kept),
+        heldout_dropped=len(heldout) - len(held_kept),
+    )
+    return Split(splits=splits, sequences=build_sequences(names, cfg.seq_len), counts=counts)
+
+
+# ----------------------------------------------------------------------------------------------
+# prepared data
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class PreparedData:
+    """A prepared cache directory loaded in memory (see ``place_recognition.prepare``)."""
+
+    root: Path
+    # (N, H, W) uint8 {0, 1}; with extra channels (N, C, H, W) float16 in [0, 1]
+    images: np.ndarray
+    positions_xy: np.ndarray  # (N, 2) world x, y of the RADAR_FRONT key-frame ego pose
+    yaw_rad: np.ndarray  # (N,)
+    timestamps_us: np.ndarray  # (N,) int64
+    scene_names: np.ndarray  # (N,) str
+    sample_tokens: np.ndarray  # (N,) str
+    rcs: list[np.ndarray]  # per frame, RCS min-max normalised to [0, 1]
+    sequences: np.ndarray  # (N, L) frame indices, oldest first, inside one scene
+    splits: dict[str, np.ndarray]  # "database", "train", "val", "test" -> frame indices
+    pos_radius_m: float = 9.0
+    neg_radius_m: float = 18.0
+    points_xy: list[np.ndarray] = field(default_factory=list)  # per frame (P, 2) float32, ref frame
+    config: PrepareConfig | None = None
+    _db_tree: object = field(default=None, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.positions_xy)
+
+    @property
+    def num_channels(self) -> int:
+        return 1 if self.images.ndim == 3 else self.images.shape[1]
+
+    @property
+    def seq_len(self) -> int:
+        return self.sequences.shape[1]
+
+    def frames_float(self, indices: np.ndarray, seq_len: int | None = None) -> np.ndarray:
+        """(M, L, C, H, W) float32 in [0, 1]: the last ``seq_len`` frames of each sequence."""
+        seq = self.sequences[np.asarray(indices, dtype=np.int64)]
+        if seq_len is not None:
+            if seq_len > seq.shape[1]:
+                raise ConfigError(f"seq_len {seq_len} > prepared sequence length {seq.shape[1]}")
+            seq = seq[:, seq.shape[1] - seq_len :]
+        imgs = self.images[seq]  # (M, L, H, W) or (M, L, C, H, W)
+        if self.images.ndim == 3:
+            imgs = imgs[:, :, None]
+        return imgs.astype(np.float32)
+
+    def _tree(self):
+        if self._db_tree is None:
+            from scipy.spatial import cKDTree
+
+            self._db_tree = cKDTree(self.positions_xy[self.splits["database"]])
+        return self._db_tree
+
+    def positives(self, query_idx: int) -> np.ndarray:
+        """DB frame indices within ``pos_radius_m`` of the query frame (sorted)."""
+        db = self.splits["database"]
+        hits = self._tree().query_ball_point(self.positions_xy[int(query_idx)], self.pos_radius_m)
+        return np.sort(db[np.asarray(hits, dtype=np.int64)])
+
+    def negatives_pool(self, query_idx: int) -> np.ndarray:
+        """DB frame indices farther than ``neg_radius_m`` from the query frame."""
+        db = self.splits["database"]
+        d = np.linalg.norm(self.positions_xy[db] - self.positions_xy[int(query_idx)], axis=1)
+        return db[d > self.neg_radius_m]
+
+    def is_positive(self, query_idx: np.ndarray, db_frames: np.ndarray) -> np.ndarray:
+        """Broadcast: whether frame ``db_frames[..]`` lies within the positive radius of a query."""
+        q = self.positions_xy[np.asarray(query_idx, dtype=np.int64)]
+        d = self.positions_xy[np.asarray(db_frames, dtype=np.int64)]
+        while q.ndim < d.ndim:
+            q = q[:, None, :]
+        return np.linalg.norm(d - q, axis=-1) <= self.pos_radius_m
+
+
+def _load_npz(path: Path) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise DataError(f"{path}: missing (run `radarslam pr prepare` first)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise DataError(f"{path}: unreadable ({exc})") from None
+
+
+def _need(d: dict, keys: tuple[str, ...], path: Path) -> None:
+    missing = [k for k in keys if k not in d]
+    if missing:
+        raise DataError(f"{path}: missing array(s) {missing}")
+
+
+def split_offsets(values: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
+    return [values[offsets[i] : offsets[i + 1]] for i in range(len(offsets) - 1)]
+
+
+def load_prepared(root: str | Path) -> PreparedData:
+    """Load a prepared cache directory written by :func:`place_recognition.prepare.prepare`."""
+    from place_recognition.image import unpack_images
+    from radarslam.config import build_config, read_yaml
+
+    root = Path(root)
+    if not root.is_dir():
+        raise DataError(f"{root}: prepared directory does not exist")
+    cfg = build_config(PrepareConfig, read_yaml(root / CONFIG_FILE), str(root / CONFIG_FILE))
+    frames = _load_npz(root / FRAMES_FILE)
+    _need(frames, ("positions_xy", "yaw_rad", "timestamps_us", "scene_names", "sample_tokens"),
+          root / FRAMES_FILE)  # fmt: skip
+    images = _load_npz(root / IMAGES_FILE)
+    _need(images, ("occupancy_packed", "width"), root / IMAGES_FILE)
+    points = _load_npz(root / POINTS_FILE)
+    _need(points, ("xy_cm", "rcs01", "offsets"), root / POINTS_FILE)
+    split = _load_npz(root / SPLIT_FILE)
+    _need(split, ("sequences", *SPLIT_NAMES), root / SPLIT_FILE)
+
+    n = len(frames["positions_xy"])
+    occ = unpack_images(images["occupancy_packed"], int(images["width"]))
+    if len(occ) != n:
+        raise DataError(f"{root / IMAGES_FILE}: {len(occ)} images for {n} frames")
+    if "extra" in images and images["extra"].size:
+        # extra channels are stored quantised 0..255; in memory every channel is in [0, 1]
+        extra = images["extra"].astype(np.float16) / np.float16(255.0)
+        imgs = np.concatenate([occ[:, None].astype(np.float16), extra], axis=1)
+    else:
+        imgs = occ
+    offsets = points["offsets"].astype(np.int64)
+    if len(offsets) != n + 1 or offsets[-1] != len(points["rcs01"]):
+        raise DataError(f"{root / POINTS_FILE}: offsets do not match {n} frames")
+    xy = points["xy_cm"].astype(np.float32) / 100.0
+    return PreparedData(
+        root=root,
+        images=imgs,
+        positions_xy=frames["positions_xy"].astype(np.float64),
+        yaw_rad=frames["yaw_rad"].astype(np.float64),
+        timestamps_us=frames["timestamps_us"].astype(np.int64),
+        scene_names=frames["scene_names"].astype(str),
+        sample_tokens=frames["sample_tokens"].astype(str),
+        rcs=split_offsets(points["rcs01"].astype(np.float32), offsets),
+        sequences=split["sequences"].astype(np.int64),
+        splits={k: split[k].astype(np.int64) for k in SPLIT_NAMES},
+        pos_radius_m=cfg.split.pos_radius_m,
+        neg_radius_m=cfg.split.neg_radius_m,
+        points_xy=split_offsets(xy, offsets),
+        config=cfg,
+    )
+
+
+def split_summary(root: str | Path) -> dict:
+    path = Path(root) / "split.json"
+    if not path.is_file():
+        raise DataError(f"{path}: missing")
+    return json.loads(path.read_text())

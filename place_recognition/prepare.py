@@ -1,0 +1,279 @@
+"""Preprocessing: key-frame index, radar images + RCS + points, and the split, cached on disk.
+
+``prepare(cfg, out_root)`` writes ``out_root/<cfg.name>/`` (hloc style: the resolved config is
+written there as ``config.yaml``) with one file per stage:
+
+- ``frames.npz``  key frames (positions, yaw, timestamps, scene names, sample tokens, versions)
+- ``images.npz``  bit-packed occupancy images (+ optional extra channels), ``points.npz`` the
+  cropped points (int16 centimetres) and their min-max-normalised RCS (float16), ``dpr.json``
+- ``split.npz`` / ``split.json``  database/train/val/test indices and the (N, L) sequences.
+
+Each stage stores a hash of the config sections it depends on. A stage whose file exists is
+skipped; if its hash differs from the current config, ``ConfigError`` unless ``overwrite=True``
+(then it and every later stage are recomputed).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from place_recognition.config import PrepareConfig
+from place_recognition.dataset import (
+    CONFIG_FILE,
+    FRAMES_FILE,
+    IMAGES_FILE,
+    POINTS_FILE,
+    SPLIT_FILE,
+    make_split,
+)
+from place_recognition.image import crop_mask, normalise_rcs, pack_images, rasterise
+from radarslam.config import dump_config
+from radarslam.errors import ConfigError, DataError
+from radarslam.geometry import yaw_of
+from radarslam.io.atomic import atomic_open, write_json_atomic, write_text_atomic
+
+log = logging.getLogger("radarslam.place_recognition")
+
+STAGES = ("frames", "clouds", "split")
+_STAGE_SECTIONS = {
+    "frames": ("source", "accumulation"),
+    "clouds": ("source", "accumulation", "dpr", "image"),
+    "split": ("source", "accumulation", "split"),
+}
+_STAGE_FILE = {"frames": FRAMES_FILE, "clouds": IMAGES_FILE, "split": SPLIT_FILE}
+
+
+def stage_hash(cfg: PrepareConfig, stage: str) -> str:
+    data = cfg.model_dump(mode="json")
+    part = {k: data[k] for k in _STAGE_SECTIONS[stage]}
+    return hashlib.sha1(json.dumps(part, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _save_npz(path: Path, **arrays) -> None:
+    with atomic_open(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+
+
+def _stored_hash(path: Path) -> str | None:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return str(z["config_hash"]) if "config_hash" in z.files else None
+    except (OSError, ValueError, EOFError):
+        return None
+
+
+@dataclass(frozen=True)
+class KeyFrameIndex:
+    positions_xy: np.ndarray
+    yaw_rad: np.ndarray
+    timestamps_us: np.ndarray
+    scene_names: np.ndarray
+    sample_tokens: np.ndarray
+    versions: np.ndarray
+
+
+def _readers(cfg: PrepareConfig):
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    src = cfg.source
+    if not src.dataroot:
+        raise ConfigError("source.dataroot is not set (give --dataroot or set it in the config)")
+    root = Path(src.dataroot)
+    if not root.is_dir():
+        raise DataError(f"{root}: dataroot does not exist")
+    readers = {}
+    for version in src.versions:
+        if not (root / version).is_dir():
+            raise DataError(f"{root / version}: nuScenes version directory does not exist")
+        readers[version] = NuScenesRadar(root, version)
+    return readers
+
+
+def _selected_scenes(cfg: PrepareConfig, readers) -> list[tuple[int, str, object]]:
+    """(start time, version, SceneInfo) of the wanted scenes, in time order."""
+    out = []
+    for version, reader in readers.items():
+        if cfg.source.location is not None:
+            if cfg.source.location not in reader.locations():
+                continue
+            scenes = reader.scenes_for_location(cfg.source.location)
+        else:
+            scenes = reader.scenes()
+        out += [(reader.scene_start_us(s), version, s) for s in scenes]
+    if not out:
+        raise DataError(
+            f"{cfg.source.dataroot}: no scene at location {cfg.source.location!r} "
+            f"in {cfg.source.versions}"
+        )
+    out.sort(key=lambda t: (t[0], t[2].name))
+    if cfg.source.max_scenes is not None:
+        out = out[: cfg.source.max_scenes]
+    return out
+
+
+def build_index(cfg: PrepareConfig, readers, progress: bool = True) -> KeyFrameIndex:
+    """Key frames (samples with a reference-channel key-frame sweep), scenes in time order."""
+    from tqdm import tqdm
+
+    ref = cfg.accumulation.ref_channel
+    rows = []
+    scenes = _selected_scenes(cfg, readers)
+    for _, version, scene in tqdm(scenes, desc="index", unit="scene", disable=not progress):
+        for frame in readers[version].iter_frames(scene, key_frames_only=True, ref_channel=ref):
+            if ref not in frame.sweeps:
+                continue  # the image is centred on the reference sensor: no sweep, no frame
+            pose = frame.world_from_ego
+            rows.append((pose[0, 3], pose[1, 3], yaw_of(pose), frame.timestamp_us, scene.name,
+                         frame.sample_token, version))  # fmt: skip
+    if not rows:
+        raise DataError(f"{cfg.source.dataroot}: the selected scenes have no {ref} key frame")
+    cols = list(zip(*rows, strict=True))
+    return KeyFrameIndex(
+        positions_xy=np.column_stack([cols[0], cols[1]]).astype(np.float64),
+        yaw_rad=np.asarray(cols[2], np.float64),
+        timestamps_us=np.asarray(cols[3], np.int64),
+        scene_names=np.asarray(cols[4], dtype=str),
+        sample_tokens=np.asarray(cols[5], dtype=str),
+        versions=np.asarray(cols[6], dtype=str),
+    )
+
+
+@dataclass(frozen=True)
+class FrameCloud:
+    """What one key frame contributes: its cropped points, normalised RCS and image."""
+
+    xy: np.ndarray  # (P, 2) float64, reference-sensor frame, inside the image
+    rcs01: np.ndarray  # (P,) float32 in [0, 1]
+    image: np.ndarray  # (C, H, W) uint8
+
+
+def frame_from_cloud(cloud, cfg: PrepareConfig | None = None, image_cfg=None) -> FrameCloud:
+    """Crop, normalise RCS and rasterise an :class:`AccumulatedCloud` (or (xy, rcs_dbsm))."""
+    image_cfg = image_cfg or (cfg.image if cfg is not None else None)
+    if image_cfg is None:
+        raise ConfigError("frame_from_cloud needs an image config")
+    if isinstance(cloud, tuple):
+        xy, rcs = cloud
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        rcs = np.asarray(rcs, dtype=np.float64).reshape(-1)
+    else:
+        xy = np.column_stack([cloud.points["x"], cloud.points["y"]]).astype(np.float64)
+        rcs = cloud.points["rcs"].astype(np.float64)
+    if len(rcs) != len(xy):
+        raise DataError(f"{len(rcs)} RCS values for {len(xy)} points")
+    keep = crop_mask(xy, image_cfg)
+    xy, rcs01 = xy[keep], normalise_rcs(rcs[keep])
+    return FrameCloud(xy=xy, rcs01=rcs01, image=rasterise(xy, image_cfg, rcs01))
+
+
+def build_clouds(cfg: PrepareConfig, readers, index: KeyFrameIndex, progress: bool = True):
+    """Accumulate (with DPR) every key frame; returns images, points, rcs, offsets, DPR stats."""
+    from tqdm import tqdm
+
+    from place_recognition.dpr import DynamicPointsRemoval
+
+    acc = cfg.accumulation
+    dpr = DynamicPointsRemoval(cfg.dpr) if cfg.dpr.enabled else None
+    n = len(index.sample_tokens)
+    size = cfg.image.size_px
+    occ = np.zeros((n, size, (size + 7) // 8), np.uint8)
+    extra = np.zeros((n, cfg.image.num_channels - 1, size, size), np.uint8)
+    xy_parts, rcs_parts = [], []
+    offsets = np.zeros(n + 1, np.int64)
+    for i in tqdm(range(n), desc="clouds", unit="frame", disable=not progress):
+        cloud = readers[str(index.versions[i])].accumulate(
+            str(index.sample_tokens[i]),
+            nsweeps=acc.nsweeps,
+            channels=acc.channels,
+            ref_channel=acc.ref_channel,
+            min_distance_m=acc.min_distance_m,
+            point_mask=dpr,
+        )
+        fc = frame_from_cloud(cloud, image_cfg=cfg.image)
+        occ[i] = pack_images(fc.image[0])
+        if len(extra[i]):
+            extra[i] = fc.image[1:]
+        xy_parts.append(np.clip(np.rint(fc.xy * 100.0), -32767, 32767).astype(np.int16))
+        rcs_parts.append(fc.rcs01.astype(np.float16))
+        offsets[i + 1] = offsets[i] + len(fc.xy)
+    xy_cm = np.concatenate(xy_parts) if xy_parts else np.zeros((0, 2), np.int16)
+    rcs01 = np.concatenate(rcs_parts) if rcs_parts else np.zeros(0, np.float16)
+    stats = dpr.stats.as_dict() if dpr is not None else {"enabled": False}
+    return occ, extra, xy_cm, rcs01, offsets, stats
+
+
+def _check_cache(out: Path, cfg: PrepareConfig, overwrite: bool) -> list[str]:
+    """Stages to (re)compute; raises on a stale stage when not overwriting."""
+    todo = []
+    stale = False
+    for stage in STAGES:
+        path = out / _STAGE_FILE[stage]
+        have = _stored_hash(path) if path.is_file() else None
+        want = stage_hash(cfg, stage)
+        if have is not None and have != want and not overwrite:
+            raise ConfigError(
+                f"{path} was made with a different config ({', '.join(_STAGE_SECTIONS[stage])}); "
+                "pass overwrite=True (--overwrite) or use another name"
+            )
+        if stale or have is None or have != want or overwrite:
+            todo.append(stage)
+            stale = True  # later stages depend on earlier ones
+    return todo
+
+
+def prepare(
+    cfg: PrepareConfig,
+    out_root: str | Path,
+    overwrite: bool = False,
+    progress: bool = True,
+    readers=None,
+    on_stage: Callable[[str], None] | None = None,
+) -> Path:
+    """Run the missing stages into ``out_root/<cfg.name>``; returns that directory."""
+    out = Path(out_root) / cfg.name
+    todo = _check_cache(out, cfg, overwrite)
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / CONFIG_FILE, dump_config(cfg))
+    if not todo:
+        log.info("%s: every stage is cached", out)
+        return out
+    if readers is None and ("frames" in todo or "clouds" in todo):
+        readers = _readers(cfg)
+
+    if "frames" in todo:
+        if on_stage:
+            on_stage("frames")
+        idx = build_index(cfg, readers, progress)
+        _save_npz(out / FRAMES_FILE, config_hash=stage_hash(cfg, "frames"),
+                  positions_xy=idx.positions_xy, yaw_rad=idx.yaw_rad,
+                  timestamps_us=idx.timestamps_us, scene_names=idx.scene_names,
+                  sample_tokens=idx.sample_tokens, versions=idx.versions)  # fmt: skip
+    with np.load(out / FRAMES_FILE, allow_pickle=False) as z:
+        idx = KeyFrameIndex(**{k: z[k] for k in KeyFrameIndex.__dataclass_fields__})
+
+    if "clouds" in todo:
+        if on_stage:
+            on_stage("clouds")
+        occ, extra, xy_cm, rcs01, offsets, stats = build_clouds(cfg, readers, idx, progress)
+        _save_npz(out / POINTS_FILE, config_hash=stage_hash(cfg, "clouds"), xy_cm=xy_cm,
+                  rcs01=rcs01, offsets=offsets)  # fmt: skip
+        write_json_atomic(out / "dpr.json", stats)
+        # images last: their hash marks the stage complete
+        _save_npz(out / IMAGES_FILE, config_hash=stage_hash(cfg, "clouds"),
+                  occupancy_packed=occ, extra=extra, width=np.int64(cfg.image.size_px))  # fmt: skip
+
+    if "split" in todo:
+        if on_stage:
+            on_stage("split")
+        split = make_split(idx.positions_xy, idx.timestamps_us, idx.scene_names, cfg.split)
+        _save_npz(out / SPLIT_FILE, config_hash=stage_hash(cfg, "split"),
+                  sequences=split.sequences, **split.splits)  # fmt: skip
+        write_json_atomic(out / "split.json", split.counts)
+    return out
