@@ -1,0 +1,176 @@
+"""Typed records of the back end (graph node keys, loop verifications) and the ``loops.csv`` codec.
+
+Kept free of heavy imports so the evaluator can read ``loops.csv`` without gtsam or open3d.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from radarslam.errors import DataError
+from radarslam.geometry import matrix_to_se2, se2_to_matrix
+from radarslam.io.atomic import write_text_atomic
+
+
+@dataclass(frozen=True, order=True)
+class NodeKey:
+    """A key frame of one session (scene): ``index`` counts key frames from 0 within the session."""
+
+    session: str
+    index: int
+
+    def __str__(self) -> str:
+        return f"{self.session}#{self.index}"
+
+
+@dataclass(frozen=True, eq=False)
+class LoopVerification:
+    """Outcome of registering a query key frame's local map against a candidate's."""
+
+    accepted: bool
+    reason: str  # "ok" or why it was rejected (names the failed threshold and value)
+    candidate_from_query: np.ndarray  # 4x4: the query key frame expressed in the candidate frame
+    fitness: float  # fraction of query points with a correspondence within max distance
+    inlier_rmse_m: float
+    overlap: float  # fraction of occupied cells shared by the two maps after alignment
+    information: np.ndarray  # 3x3, Pose2 tangent order (x, y, theta)
+    initial_heading_deg: float = float("nan")  # the heading hypothesis that won
+    runtime_ms: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class LoopCandidate:
+    """One place-recognition candidate and what verification made of it (one ``loops.csv`` row)."""
+
+    query: NodeKey
+    candidate: NodeKey
+    query_timestamp_us: int
+    candidate_timestamp_us: int
+    descriptor_distance: float
+    accepted: bool
+    reason: str
+    candidate_from_query: np.ndarray = field(default_factory=lambda: np.eye(4))
+    fitness: float = float("nan")
+    inlier_rmse_m: float = float("nan")
+    overlap: float = float("nan")
+
+    @staticmethod
+    def from_verification(
+        query: NodeKey,
+        candidate: NodeKey,
+        query_timestamp_us: int,
+        candidate_timestamp_us: int,
+        descriptor_distance: float,
+        verification: LoopVerification,
+    ) -> LoopCandidate:
+        return LoopCandidate(
+            query=query,
+            candidate=candidate,
+            query_timestamp_us=int(query_timestamp_us),
+            candidate_timestamp_us=int(candidate_timestamp_us),
+            descriptor_distance=float(descriptor_distance),
+            accepted=verification.accepted,
+            reason=verification.reason,
+            candidate_from_query=verification.candidate_from_query,
+            fitness=verification.fitness,
+            inlier_rmse_m=verification.inlier_rmse_m,
+            overlap=verification.overlap,
+        )
+
+
+LOOPS_CSV_COLUMNS: tuple[str, ...] = (
+    "query_session",
+    "query_index",
+    "query_timestamp_us",
+    "candidate_session",
+    "candidate_index",
+    "candidate_timestamp_us",
+    "descriptor_distance",
+    "accepted",
+    "reason",
+    "fitness",
+    "inlier_rmse_m",
+    "overlap",
+    "x_m",
+    "y_m",
+    "yaw_rad",
+)
+
+
+def write_loops_csv(path: str | Path, loops: list[LoopCandidate]) -> None:
+    """Every candidate (accepted and rejected), atomically; (x_m, y_m, yaw_rad) is the planar
+    ``candidate_from_query``."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(LOOPS_CSV_COLUMNS)
+    for lc in loops:
+        x, y, yaw = matrix_to_se2(np.asarray(lc.candidate_from_query, dtype=np.float64))
+        w.writerow(
+            [
+                lc.query.session,
+                lc.query.index,
+                lc.query_timestamp_us,
+                lc.candidate.session,
+                lc.candidate.index,
+                lc.candidate_timestamp_us,
+                repr(float(lc.descriptor_distance)),
+                int(bool(lc.accepted)),
+                lc.reason,
+                repr(float(lc.fitness)),
+                repr(float(lc.inlier_rmse_m)),
+                repr(float(lc.overlap)),
+                repr(float(x)),
+                repr(float(y)),
+                repr(float(yaw)),
+            ]
+        )
+    write_text_atomic(path, buf.getvalue())
+
+
+def read_loops_csv(path: str | Path) -> list[LoopCandidate]:
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: loops file does not exist")
+    with path.open(newline="") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None or tuple(header) != LOOPS_CSV_COLUMNS:
+            raise DataError(f"{path}:1: header is not {','.join(LOOPS_CSV_COLUMNS)}")
+        out = []
+        for lineno, row in enumerate(reader, start=2):
+            if not row:
+                continue
+            if len(row) != len(LOOPS_CSV_COLUMNS):
+                raise DataError(
+                    f"{path}:{lineno}: expected {len(LOOPS_CSV_COLUMNS)} columns, got {len(row)}"
+                )
+            r = dict(zip(LOOPS_CSV_COLUMNS, row, strict=True))
+            try:
+                accepted = {"1": True, "0": False, "true": True, "false": False}[
+                    r["accepted"].strip().lower()
+                ]
+                x, y, yaw = float(r["x_m"]), float(r["y_m"]), float(r["yaw_rad"])
+                lc = LoopCandidate(
+                    query=NodeKey(r["query_session"], int(r["query_index"])),
+                    candidate=NodeKey(r["candidate_session"], int(r["candidate_index"])),
+                    query_timestamp_us=int(r["query_timestamp_us"]),
+                    candidate_timestamp_us=int(r["candidate_timestamp_us"]),
+                    descriptor_distance=float(r["descriptor_distance"]),
+                    accepted=accepted,
+                    reason=r["reason"],
+                    candidate_from_query=se2_to_matrix(x, y, yaw),
+                    fitness=float(r["fitness"]),
+                    inlier_rmse_m=float(r["inlier_rmse_m"]),
+                    overlap=float(r["overlap"]),
+                )
+            except (ValueError, KeyError):
+                raise DataError(f"{path}:{lineno}: malformed loop row {','.join(row)!r}") from None
+            if accepted and not np.all(np.isfinite([x, y, yaw])):
+                raise DataError(f"{path}:{lineno}: accepted loop with non-finite pose")
+            out.append(lc)
+    return out

@@ -1,0 +1,90 @@
+"""Seeded synthetic pose-graph problems (multi-lap circuits with noisy odometry, true and false
+loop closures) for the back-end tests and ``bench/backend.py``. Pure numpy."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from radarslam.geometry import invert, se2_to_matrix
+
+
+@dataclass(frozen=True)
+class SyntheticLoop:
+    i: int  # earlier node (the "candidate")
+    j: int  # later node (the "query")
+    i_from_j: np.ndarray  # 4x4 measurement
+    true: bool  # False for injected outliers
+
+
+@dataclass(frozen=True)
+class SyntheticGraph:
+    gt: np.ndarray  # (N, 4, 4) world_from_ego ground truth
+    odometry: np.ndarray  # (N-1, 4, 4) noisy ego_i_from_ego_{i+1}
+    odometry_covariance: np.ndarray  # 3x3 (x, y, yaw)
+    loops: list[SyntheticLoop] = field(default_factory=list)
+    loop_information: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    @property
+    def dead_reckoning(self) -> np.ndarray:
+        """(N, 4, 4) odometry chained from the true first pose."""
+        out = [self.gt[0]]
+        for rel in self.odometry:
+            out.append(out[-1] @ rel)
+        return np.stack(out)
+
+
+def _noise_pose(rng, sigmas) -> np.ndarray:
+    dx, dy, dth = rng.normal(scale=sigmas)
+    return se2_to_matrix(dx, dy, dth)
+
+
+def multilap_circuit(
+    num_laps: int = 3,
+    poses_per_lap: int = 100,
+    radius_m: float = 40.0,
+    odometry_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.004),
+    loop_every: int = 5,
+    loop_sigmas: tuple[float, float, float] = (0.1, 0.1, 0.01),
+    false_loop_fraction: float = 0.0,
+    seed: int = 0,
+) -> SyntheticGraph:
+    """A circle driven ``num_laps`` times; every ``loop_every``-th node of laps >= 1 gets a true
+    loop to the same place one lap earlier (measured with ``loop_sigmas`` noise). Then
+    ``false_loop_fraction`` x (number of true loops) outliers are added between random nodes at
+    least a quarter lap apart, with a measurement that is plausible-looking (a few metres, random
+    heading) but wrong."""
+    rng = np.random.default_rng(seed)
+    n = num_laps * poses_per_lap
+    th = 2 * np.pi * np.arange(n) / poses_per_lap
+    gt = np.stack([se2_to_matrix(radius_m * np.sin(a), radius_m * (1 - np.cos(a)), a) for a in th])
+    odo_sig = np.asarray(odometry_sigmas, dtype=np.float64)
+    odometry = np.stack(
+        [invert(gt[k]) @ gt[k + 1] @ _noise_pose(rng, odo_sig) for k in range(n - 1)]
+    )
+    loops: list[SyntheticLoop] = []
+    loop_sig = np.asarray(loop_sigmas, dtype=np.float64)
+    for j in range(poses_per_lap, n, loop_every):
+        i = j - poses_per_lap
+        meas = invert(gt[i]) @ gt[j] @ _noise_pose(rng, loop_sig)
+        loops.append(SyntheticLoop(i, j, meas, True))
+    num_false = int(round(false_loop_fraction * len(loops)))
+    for _ in range(num_false):
+        while True:
+            j = int(rng.integers(poses_per_lap // 4, n))
+            i = int(rng.integers(0, j - poses_per_lap // 4 + 1))
+            # a wrong place: genuinely far from where i sees j
+            if np.linalg.norm(gt[i][:2, 3] - gt[j][:2, 3]) > 10.0:
+                break
+        dx, dy = rng.uniform(-3, 3, size=2)
+        meas = se2_to_matrix(dx, dy, rng.uniform(-np.pi, np.pi))
+        loops.append(SyntheticLoop(i, j, meas, False))
+    loops.sort(key=lambda lp: lp.j)
+    return SyntheticGraph(
+        gt=gt,
+        odometry=odometry,
+        odometry_covariance=np.diag(odo_sig**2),
+        loops=loops,
+        loop_information=np.diag(1.0 / loop_sig**2),
+    )

@@ -1,0 +1,157 @@
+import numpy as np
+import pytest
+
+from radarslam.errors import DataError
+from radarslam.eval.metrics import ate
+from radarslam.geometry import invert, se2_to_matrix
+from radarslam.slam.pose_graph import PoseGraph, PoseGraphConfig
+from radarslam.slam.records import NodeKey
+from radarslam.slam.synthetic_graph import multilap_circuit
+
+
+def _build(sg, config=None, session="s", with_loops=True, graph=None, anchor="prior", first=None):
+    pg = graph or PoseGraph(config or PoseGraphConfig())
+    pg.add_session(session, sg.gt[0] if first is None else first, anchor=anchor)
+    by_j = {}
+    for lp in sg.loops if with_loops else []:
+        by_j.setdefault(lp.j, []).append(lp)
+    for k, rel in enumerate(sg.odometry):
+        pg.add_odometry(session, k, k + 1, rel, sg.odometry_covariance)
+        for lp in by_j.get(k + 1, []):
+            pg.add_loop(
+                NodeKey(session, lp.i), NodeKey(session, lp.j), lp.i_from_j, sg.loop_information
+            )
+        pg.update()
+    return pg
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return multilap_circuit(num_laps=3, poses_per_lap=100, seed=1)
+
+
+def test_no_loops_gives_exactly_the_odometry_chain(clean):
+    pg = _build(clean, with_loops=False)
+    np.testing.assert_allclose(pg.session_poses("s"), clean.dead_reckoning, atol=1e-6)
+    pg.optimize_batch()
+    np.testing.assert_allclose(pg.session_poses("s"), clean.dead_reckoning, atol=1e-6)
+    assert pg.components()[0].sessions == ("s",)
+
+
+def test_loops_remove_drift_incremental_and_batch(clean):
+    dr = ate(clean.dead_reckoning, clean.gt, align="none").rmse_m
+    pg = _build(clean, PoseGraphConfig(loop_robust="none"))
+    inc = ate(pg.session_poses("s"), clean.gt, align="none").rmse_m
+    pg.optimize_batch()
+    batch = ate(pg.session_poses("s"), clean.gt, align="none").rmse_m
+    assert dr == pytest.approx(7.077, abs=1e-3)
+    assert batch == pytest.approx(0.595, abs=2e-3)
+    assert inc == pytest.approx(batch, rel=0.02)  # Gaussian loops: iSAM2 converges to batch
+    assert len(pg.update_times_s) == len(clean.odometry) + 1
+    assert all(r.inlier for r in pg.loop_residuals())
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.3, 0.5])
+def test_false_loops_are_absorbed_by_robust_kernel_and_gnc(clean, fraction):
+    ref = _build(clean)
+    ref.optimize_batch()
+    clean_ate = ate(ref.session_poses("s"), clean.gt, align="none").rmse_m
+    sg = multilap_circuit(num_laps=3, poses_per_lap=100, seed=1, false_loop_fraction=fraction)
+    assert sum(not lp.true for lp in sg.loops) == round(fraction * 40)
+    gauss = _build(sg, PoseGraphConfig(loop_robust="none"))
+    gauss.optimize_batch()
+    assert ate(gauss.session_poses("s"), sg.gt, align="none").rmse_m > 20.0  # outliers hurt
+    for gnc in (False, True):
+        pg = _build(sg)
+        pg.optimize_batch(use_gnc=gnc)
+        err = ate(pg.session_poses("s"), sg.gt, align="none").rmse_m
+        assert err <= 1.10 * clean_ate, (gnc, err, clean_ate)
+        res = pg.loop_residuals()
+        flagged = [not r.inlier for r in res]
+        truth = [not lp.true for lp in sorted(sg.loops, key=lambda lp: lp.j)]
+        # every injected outlier is recognised as one after optimisation
+        assert all(f for f, t in zip(flagged, truth, strict=True) if t)
+
+
+def test_two_unlinked_sessions_are_two_components(clean):
+    pg = PoseGraph()
+    _build(clean, graph=pg, session="a", with_loops=False)
+    # the second session: same route, guess far away, weak anchor
+    guess = se2_to_matrix(500.0, -300.0, 1.0)
+    _build(clean, graph=pg, session="b", with_loops=False, anchor="unknown", first=guess)
+    pg.optimize_batch()
+    comps = pg.components()
+    assert [c.sessions for c in comps] == [("a",), ("b",)]
+    assert comps[0].anchored and not comps[1].anchored and comps[1].anchor_session == "b"
+    # the weak anchor keeps the unlinked session exactly where odometry from its guess puts it
+    b = pg.session_poses("b")
+    expected = guess @ invert(clean.gt[0]) @ clean.dead_reckoning
+    np.testing.assert_allclose(b, expected, atol=1e-5)
+
+
+def test_inter_session_loops_join_and_correct_the_floating_session(clean):
+    pg = PoseGraph()
+    _build(clean, graph=pg, session="a", with_loops=False)
+    guess = se2_to_matrix(500.0, -300.0, 1.0)
+    _build(clean, graph=pg, session="b", with_loops=False, anchor="unknown", first=guess)
+    for k in range(0, 300, 10):  # b drove exactly a's route: a_k == b_k in the world
+        pg.add_loop(NodeKey("a", k), NodeKey("b", k), np.eye(4), clean.loop_information)
+    pg.optimize_batch()
+    comps = pg.components(inliers_only=True)
+    assert len(comps) == 1 and set(comps[0].sessions) == {"a", "b"} and comps[0].anchored
+    a, b = pg.session_poses("a"), pg.session_poses("b")
+    assert np.max(np.linalg.norm(a[:, :2, 3] - b[:, :2, 3], axis=1)) < 0.5
+
+
+def test_marginals_and_pose3_match_pose2(clean):
+    pg2 = _build(clean, PoseGraphConfig(loop_robust="none"))
+    pg2.optimize_batch()
+    pg3 = _build(clean, PoseGraphConfig(loop_robust="none", pose_type="pose3"))
+    pg3.optimize_batch()
+    np.testing.assert_allclose(pg3.session_poses("s"), pg2.session_poses("s"), atol=1e-3)
+    c0 = pg2.marginal_covariance(NodeKey("s", 0))
+    c_mid = pg2.marginal_covariance(NodeKey("s", 150))
+    assert c0.shape == (3, 3) and np.all(np.linalg.eigvalsh(c_mid) > 0)
+    assert c_mid[0, 0] > c0[0, 0]  # uncertainty grows away from the prior
+    assert pg3.marginal_covariance(NodeKey("s", 150)).shape == (6, 6)
+
+
+def test_export_g2o_reads_back_in_gtsam(tmp_path, clean):
+    import gtsam
+
+    pg = _build(clean)
+    pg.optimize_batch()
+    path = tmp_path / "graph.g2o"
+    pg.export_g2o(path)
+    graph, values = gtsam.readG2o(str(path), False)
+    assert values.size() == 300
+    assert graph.size() == 299 + len(clean.loops)
+    xyz = gtsam.utilities.extractPose2(values)
+    est = pg.session_poses("s")
+    np.testing.assert_allclose(xyz[:, :2], est[:, :2, 3], atol=1e-9)
+
+
+def test_gtsam_key_scheme_round_trips():
+    pg = PoseGraph()
+    pg.add_session("scene-0001", np.eye(4), anchor="prior")
+    pg.add_session("scene-0002", np.eye(4))
+    k = pg.gtsam_key(NodeKey("scene-0002", 7))
+    assert pg.node_key(k) == NodeKey("scene-0002", 7)
+
+
+def test_bad_input_is_data_error():
+    pg = PoseGraph()
+    pg.add_session("s", np.eye(4), anchor="prior")
+    with pytest.raises(DataError, match="added twice"):
+        pg.add_session("s", np.eye(4))
+    with pytest.raises(DataError, match="missing node s#3"):
+        pg.add_odometry("s", 3, 4, np.eye(4), np.eye(3))
+    with pytest.raises(DataError, match="not positive definite"):
+        pg.add_odometry("s", 0, 1, np.eye(4), np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(DataError, match="3x3"):
+        pg.add_odometry("s", 0, 1, np.eye(4), np.eye(2))
+    pg.add_odometry("s", 0, 1, np.eye(4), np.eye(3) * 0.01)
+    with pytest.raises(DataError, match="missing node s#5"):
+        pg.add_loop(NodeKey("s", 0), NodeKey("s", 5), np.eye(4), np.eye(3))
+    with pytest.raises(DataError, match="unknown session"):
+        pg.add_odometry("t", 0, 1, np.eye(4), np.eye(3))
