@@ -22,6 +22,9 @@ app = typer.Typer(
 
 # --- command registration (each module is light at import time) -------------------------------
 # BEGIN COMMANDS
+from radarslam.nuscenes import commands as _nuscenes_commands  # noqa: E402
+
+app.command("stats")(_nuscenes_commands.stats)
 # END COMMANDS
 
 
