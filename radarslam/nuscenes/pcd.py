@@ -26,10 +26,15 @@ def _header_dtype(path: Path, header: dict[str, list[str]]) -> np.dtype:
     counts = header.get("COUNT", ["1"] * len(fields))
     if not (len(fields) == len(sizes) == len(types) == len(counts)):
         raise DataError(f"{path}: header FIELDS/SIZE/TYPE/COUNT have different lengths")
+    dup = sorted({f for f in fields if fields.count(f) > 1})
+    if dup:
+        raise DataError(f"{path}: header FIELDS repeats {', '.join(dup)}")
     parts = []
     for name, size, kind, count in zip(fields, sizes, types, counts, strict=True):
         if count != "1":
             raise DataError(f"{path}: field {name!r} has COUNT {count}; radar fields have COUNT 1")
+        if not size.isdigit():
+            raise DataError(f"{path}: field {name!r} has SIZE {size!r}, not an integer")
         if name in _SIZE_TYPE:
             want_size, want_kind = _SIZE_TYPE[name]
             if int(size) != want_size or kind != _PCD_KIND[want_kind]:
