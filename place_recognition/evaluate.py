@@ -1,0 +1,281 @@
+"""The evaluation harness: one split, one ground truth (9 m), one metric code for every method.
+
+A method produces a :class:`Ranking` (per query, database frames best first with a lower-is-better
+score): descriptors through :class:`~place_recognition.retrieval.DescriptorIndex`, ScanContext
+through its own two-stage search. RCSHR re-orders a ranking's top-M. :func:`evaluate_ranking`
+turns a ranking into recall@N, the PR curve, max F1 and AP (reference definitions, see
+:mod:`.metrics`).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from place_recognition.config import (
+    EvalConfig,
+    M2DPConfig,
+    RerankConfig,
+    RetrievalConfig,
+    ScanContextConfig,
+)
+from place_recognition.dataset import PreparedData
+from place_recognition.metrics import PRCurve, pr_curve, recall_at_n
+from place_recognition.rcshr import rcs_histograms, rerank
+from place_recognition.retrieval import DescriptorIndex
+from radarslam.errors import DataError
+from radarslam.io.atomic import write_json_atomic, write_text_atomic
+
+
+@dataclass(frozen=True)
+class Ranking:
+    """Retrieval output for a set of query frames."""
+
+    query_frames: np.ndarray  # (Q,) frame indices
+    db_frames: np.ndarray  # (Q, K) frame indices of database frames, best first
+    scores: np.ndarray  # (Q, K) ascending (descriptor distance or re-ranked score)
+    distances: np.ndarray | None = None  # (Q, K) descriptor distance when scores are re-ranked
+
+
+@dataclass
+class EvalResult:
+    name: str
+    split: str
+    num_queries: int
+    recall: dict[int, float]
+    max_f1: float
+    average_precision: float
+    curve: PRCurve = field(repr=False)
+    extra: dict = field(default_factory=dict)
+
+    def row(self) -> dict:
+        out = {"method": self.name, "split": self.split, "queries": self.num_queries}
+        out.update({f"R@{n}": round(100 * r, 2) for n, r in self.recall.items()})
+        out.update(maxF1=round(self.max_f1, 4), AP=round(self.average_precision, 4))
+        out.update(self.extra)
+        return out
+
+
+def _split(data: PreparedData, split: str) -> np.ndarray:
+    if split not in data.splits:
+        raise DataError(f"{data.root}: unknown split {split!r} (have {sorted(data.splits)})")
+    idx = np.asarray(data.splits[split], dtype=np.int64)
+    if len(idx) == 0:
+        raise DataError(f"{data.root}: split {split!r} is empty")
+    return idx
+
+
+def descriptor_ranking(
+    data: PreparedData,
+    db_descriptors: np.ndarray,
+    query_descriptors: np.ndarray,
+    query_frames: np.ndarray,
+    k: int,
+    cfg: RetrievalConfig | None = None,
+) -> Ranking:
+    """Rank the database (rows = ``data.splits['database']``) by Euclidean descriptor distance."""
+    db = data.splits["database"]
+    if len(db_descriptors) != len(db):
+        raise DataError(f"{len(db_descriptors)} database descriptors for {len(db)} DB frames")
+    if len(query_descriptors) != len(query_frames):
+        raise DataError(
+            f"{len(query_descriptors)} query descriptors for {len(query_frames)} frames"
+        )
+    res = DescriptorIndex.from_descriptors(db_descriptors, cfg).search(query_descriptors, k)
+    return Ranking(np.asarray(query_frames), db[res.indices], res.distances, res.distances)
+
+
+def apply_rcshr(data: PreparedData, ranking: Ranking, cfg: RerankConfig) -> Ranking:
+    """Re-order each query's top-M (by the ranking's score) with the RCS histogram KL."""
+    m = min(cfg.top_m, ranking.db_frames.shape[1])
+    cand = ranking.db_frames[:, :m]
+    dist = (ranking.distances if ranking.distances is not None else ranking.scores)[:, :m]
+    frames = np.unique(np.concatenate([ranking.query_frames, cand.ravel()]))
+    hists = rcs_histograms([data.rcs[i] for i in frames], cfg)
+    row_of = np.full(len(data), -1, np.int64)
+    row_of[frames] = np.arange(len(frames))
+    out = rerank(row_of[cand], dist, hists[row_of[ranking.query_frames]], hists, cfg.alpha)
+    return Ranking(ranking.query_frames, frames[out.indices], out.scores, out.distances)
+
+
+def evaluate_ranking(
+    data: PreparedData, ranking: Ranking, cfg: EvalConfig, name: str, split: str = "test"
+) -> EvalResult:
+    correct = data.is_positive(ranking.query_frames, ranking.db_frames)
+    if correct.shape[1] == 0:
+        raise DataError("the ranking retrieved no database frame")
+    rec = recall_at_n(correct, cfg.recall_at)
+    curve = pr_curve(ranking.scores[:, 0], correct[:, 0], cfg.pr_decimals)
+    return EvalResult(
+        name=name,
+        split=split,
+        num_queries=len(ranking.query_frames),
+        recall=rec,
+        max_f1=curve.max_f1,
+        average_precision=curve.average_precision,
+        curve=curve,
+    )
+
+
+def rcshr_grid() -> list[RerankConfig]:
+    """The small grid tuned on validation: b_m x b_w x alpha around the paper's values."""
+    out = []
+    for b_m in (0.0, 0.02, 0.04, 0.06):
+        for b_w in (0.02, 0.04, 0.06, 0.08):
+            for alpha in (0.1, 0.2, 0.3, 0.41, 0.5, 0.6):
+                out.append(RerankConfig(bin_min=b_m, bin_width=b_w, alpha=alpha))
+    return out
+
+
+@dataclass(frozen=True)
+class TuneResult:
+    best: RerankConfig
+    best_recall_at_1: float
+    baseline_recall_at_1: float
+    trials: list[dict]
+
+
+def tune_rcshr(
+    data: PreparedData,
+    val_ranking: Ranking,
+    grid: Sequence[RerankConfig] | None = None,
+) -> TuneResult:
+    """Grid search of (b_m, b_w, alpha) on the VALIDATION ranking only (max R@1, then mean R@5)."""
+    grid = list(grid) if grid is not None else rcshr_grid()
+    if not grid:
+        raise DataError("empty RCSHR grid")
+    base = data.is_positive(val_ranking.query_frames, val_ranking.db_frames[:, :1]).mean()
+    best, best_key, trials = None, None, []
+    for cfg in grid:
+        r = apply_rcshr(data, val_ranking, cfg)
+        correct = data.is_positive(r.query_frames, r.db_frames[:, :5])
+        r1 = float(correct[:, 0].mean())
+        r5 = float(np.logical_or.accumulate(correct, axis=1)[:, -1].mean())
+        trials.append({"bin_min": cfg.bin_min, "bin_width": cfg.bin_width, "alpha": cfg.alpha,
+                       "R@1": r1, "R@5": r5})  # fmt: skip
+        key = (r1, r5)
+        if best_key is None or key > best_key:
+            best, best_key = cfg, key
+    assert best is not None and best_key is not None
+    return TuneResult(best=best, best_recall_at_1=best_key[0], baseline_recall_at_1=float(base),
+                      trials=trials)  # fmt: skip
+
+
+# ---- handcrafted baselines ------------------------------------------------------------------
+def m2dp_descriptors(data: PreparedData, frames: np.ndarray, cfg: M2DPConfig) -> np.ndarray:
+    from place_recognition.baselines.m2dp import m2dp
+
+    return np.stack([m2dp(data.points_xy[i], cfg) for i in np.asarray(frames)])
+
+
+def scancontext_ranking(
+    data: PreparedData, query_frames: np.ndarray, k: int, cfg: ScanContextConfig
+) -> Ranking:
+    from place_recognition.baselines.scancontext import ScanContextIndex
+
+    db = data.splits["database"]
+    index = ScanContextIndex(cfg)
+    index.add(np.stack([index.describe(data.points_xy[i], data.rcs[i]) for i in db]))
+    queries = np.stack([index.describe(data.points_xy[i], data.rcs[i]) for i in query_frames])
+    res = index.search(queries, k)
+    return Ranking(np.asarray(query_frames), db[res.indices], res.distances, res.distances)
+
+
+def evaluate_method(
+    data: PreparedData,
+    name: str,
+    ranking_fn: Callable[[np.ndarray, int], Ranking],
+    cfg: EvalConfig,
+    split: str = "test",
+    rerank_cfg: RerankConfig | None = None,
+    tune_on_val: bool = False,
+) -> list[EvalResult]:
+    """Evaluate ``ranking_fn(query_frames, k)`` on ``split``; with RCSHR also a "+RCSHR" row.
+
+    ``tune_on_val``: the RCSHR parameters are grid-searched on the val split's ranking first.
+    """
+    k = max(max(cfg.recall_at), cfg.rerank.top_m if rerank_cfg is not None else 0)
+    queries = _split(data, split)
+    ranking = ranking_fn(queries, k)
+    results = [evaluate_ranking(data, ranking, cfg, name, split)]
+    if rerank_cfg is not None:
+        extra = {}
+        if tune_on_val:
+            tuned = tune_rcshr(data, ranking_fn(_split(data, "val"), k))
+            rerank_cfg = tuned.best.model_copy(update={"top_m": rerank_cfg.top_m})
+            extra = {"val_R@1": round(100 * tuned.best_recall_at_1, 2)}
+        rr = evaluate_ranking(data, apply_rcshr(data, ranking, rerank_cfg), cfg,
+                              f"{name}+RCSHR", split)  # fmt: skip
+        rr.extra.update(extra, b_m=rerank_cfg.bin_min, b_w=rerank_cfg.bin_width,
+                        alpha=rerank_cfg.alpha)  # fmt: skip
+        results.append(rr)
+    return results
+
+
+def descriptor_ranking_fn(
+    data: PreparedData, describe: Callable[[np.ndarray], np.ndarray], cfg: EvalConfig
+) -> Callable[[np.ndarray, int], Ranking]:
+    """A ranking function from ``describe(frames) -> (M, D)``; the DB is described once."""
+    cache: dict[str, np.ndarray] = {}
+
+    def fn(query_frames: np.ndarray, k: int) -> Ranking:
+        if "db" not in cache:
+            cache["db"] = describe(data.splits["database"])
+        q = describe(query_frames)
+        return descriptor_ranking(data, cache["db"], q, query_frames, k, cfg.retrieval)
+
+    return fn
+
+
+# ---- tables ---------------------------------------------------------------------------------
+def markdown_table(rows: Sequence[dict], columns: Sequence[str] | None = None) -> str:
+    if not rows:
+        return "(no results)\n"
+    cols = list(columns) if columns else list(dict.fromkeys(k for r in rows for k in r))
+    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    for r in rows:
+        cells = []
+        for c in cols:
+            v = r.get(c, "")
+            cells.append(f"{v:.4g}" if isinstance(v, float) else str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_results(
+    results: Sequence[EvalResult], out_dir: str | Path, stem: str = "results", plot: bool = True
+) -> dict[str, Path]:
+    """``<stem>.json``, ``<stem>.md`` and (optionally) ``<stem>_pr.png``, all atomic."""
+    from place_recognition.metrics import save_pr_plot
+
+    out = Path(out_dir)
+    rows = [r.row() for r in results]
+    paths = {"json": out / f"{stem}.json", "md": out / f"{stem}.md"}
+    payload = {
+        "rows": rows,
+        "curves": {
+            r.name: {
+                "thresholds": r.curve.thresholds.tolist(),
+                "precision": r.curve.precision.tolist(),
+                "recall": r.curve.recall.tolist(),
+            }
+            for r in results
+        },
+    }
+    write_json_atomic(paths["json"], payload)
+    write_text_atomic(paths["md"], markdown_table(rows))
+    if plot:
+        paths["png"] = save_pr_plot({r.name: r.curve for r in results}, out / f"{stem}_pr.png")
+    return paths
+
+
+def load_results(path: str | Path) -> list[dict]:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())["rows"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise DataError(f"{path}: not a results file ({exc})") from None

@@ -1,0 +1,309 @@
+"""The standalone loop detector: AutoPlace descriptors + exact search + RCSHR re-ranking.
+
+    rec = PlaceRecognizer()                      # the shipped compact checkpoint
+    cloud = rec.cloud_from_reader(reader, sample_token)   # 5 radars x 7 sweeps, DPR applied
+    candidates = rec.query([prev2, prev1, cloud], k=5)    # pure: the database is not changed
+    rec.add([prev2, prev1, cloud], key=sample_token)      # explicit insertion
+
+Inputs are :class:`~radarslam.types.AccumulatedCloud` objects in the reference-sensor frame (or
+:class:`~place_recognition.prepare.FrameCloud`), alone or as a sequence oldest first; a temporal
+model needs ``seq_len`` frames and a shorter sequence is padded by repeating its oldest frame (the
+same rule as at a scene start). Dynamic points must be removed while accumulating (the points no
+longer carry their sensor's line of sight): :meth:`PlaceRecognizer.cloud_from_reader` does that.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Collection, Hashable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from place_recognition.config import PlaceRecognizerConfig
+from place_recognition.rcshr import bin_edges, kl_divergence, rcs_histogram
+from place_recognition.retrieval import DescriptorIndex
+from radarslam.config import build_config
+from radarslam.errors import CheckpointError, DataError
+from radarslam.types import AccumulatedCloud
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "compact.pt"
+DB_FORMAT = "radarslam.place_db"
+
+
+@dataclass(frozen=True)
+class PlaceCandidate:
+    """One retrieved place."""
+
+    key: Hashable  # what was given to ``add``
+    descriptor_distance: float  # Euclidean distance between global descriptors
+    score: float  # re-ranked score (alpha * KL + (1 - alpha) * d), = distance without RCSHR
+    rank: int  # 0 = best
+
+
+class PlaceRecognizer:
+    """A database of places and the AutoPlace pipeline to describe and query them."""
+
+    def __init__(
+        self,
+        model=None,
+        checkpoint: str | Path | None = None,
+        config: PlaceRecognizerConfig | None = None,
+    ):
+        self.config = config or PlaceRecognizerConfig()
+        if model is not None and checkpoint is not None:
+            raise CheckpointError("give either a model or a checkpoint, not both")
+        self.checkpoint = None
+        if model is None:
+            path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+            if not path.is_file():
+                raise CheckpointError(
+                    f"{path}: checkpoint not found"
+                    + (
+                        " (the default compact weights are not installed)"
+                        if checkpoint is None
+                        else ""
+                    )  # fmt: skip
+                )
+            from place_recognition.checkpoint import load_model
+
+            model, _, _ = load_model(path, device=self.config.device)
+            self.checkpoint = path
+        self.model = model
+        if hasattr(model, "eval"):
+            model.eval()
+        model_cfg = getattr(model, "cfg", None)
+        model_seq = getattr(model_cfg, "seq_len", None)
+        if self.config.seq_len is not None and model_seq is not None:
+            if self.config.seq_len != model_seq:
+                raise CheckpointError(
+                    f"config seq_len={self.config.seq_len} but the model uses {model_seq} frames"
+                )
+        self.seq_len = int(self.config.seq_len or model_seq or 1)
+        in_ch = getattr(model_cfg, "in_channels", None)
+        if in_ch is not None and in_ch != self.config.image.num_channels:
+            raise CheckpointError(
+                f"model expects {in_ch} image channel(s), config makes "
+                f"{self.config.image.num_channels}"
+            )
+        size = getattr(model_cfg, "image_size_px", None)
+        if size is not None and size != self.config.image.size_px:
+            raise CheckpointError(
+                f"model expects {size} px images, config makes {self.config.image.size_px}"
+            )
+        self._edges = bin_edges(self.config.rerank.bin_min, self.config.rerank.bin_width)
+        self._keys: list[Hashable] = []
+        self._key_set: set = set()
+        self._hists: list[np.ndarray] = []
+        self._rcs: list[np.ndarray] = []
+        self._index: DescriptorIndex | None = None
+
+    # ---- inputs ------------------------------------------------------------------------------
+    def cloud_from_reader(self, reader, sample_token: str) -> AccumulatedCloud:
+        """Accumulate a key frame with this recognizer's sweeps/radars and DPR settings."""
+        from place_recognition.dpr import make_point_mask
+
+        acc = self.config.accumulation
+        return reader.accumulate(
+            sample_token,
+            nsweeps=acc.nsweeps,
+            channels=acc.channels,
+            ref_channel=acc.ref_channel,
+            min_distance_m=acc.min_distance_m,
+            point_mask=make_point_mask(self.config.dpr),
+        )
+
+    def _frame(self, item):
+        from place_recognition.prepare import FrameCloud, frame_from_cloud
+
+        if isinstance(item, FrameCloud):
+            return item
+        if isinstance(item, AccumulatedCloud):
+            want = self.config.accumulation.ref_channel
+            if item.ref_channel != want:
+                raise DataError(
+                    f"cloud {item.sample_token or item.timestamp_us} is in the "
+                    f"{item.ref_channel or 'ego'} frame; the images are centred on {want}"
+                )
+            return frame_from_cloud(item, image_cfg=self.config.image)
+        raise DataError(
+            f"expected an AccumulatedCloud or FrameCloud (or a sequence of them), "
+            f"got {type(item).__name__}"
+        )
+
+    def _frames(self, frame_or_cloud) -> list:
+        items = (
+            list(frame_or_cloud) if isinstance(frame_or_cloud, (list, tuple)) else [frame_or_cloud]
+        )
+        if not items:
+            raise DataError("empty frame sequence")
+        frames = [self._frame(it) for it in items][-self.seq_len :]
+        while len(frames) < self.seq_len:
+            frames.insert(0, frames[0])
+        return frames
+
+    def describe(self, frame_or_cloud) -> tuple[np.ndarray, np.ndarray]:
+        """(descriptor (D,) float32, current-frame RCS values in [0, 1])."""
+        frames = self._frames(frame_or_cloud)
+        stack = np.stack([f.image for f in frames]).astype(np.float32)  # (L, C, H, W)
+        if stack.shape[1] > 1:
+            stack[:, 1:] /= 255.0
+        desc = self._run_model(stack[None])[0]
+        return desc, frames[-1].rcs01
+
+    def _run_model(self, batch: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            x = torch.from_numpy(batch).to(self.config.device)
+            out = self.model(x)
+        out = out.detach().float().cpu().numpy() if hasattr(out, "detach") else np.asarray(out)
+        if out.ndim != 2 or len(out) != len(batch) or not np.all(np.isfinite(out)):
+            raise CheckpointError(f"model returned {out.shape} (non-finite or wrong shape)")
+        return out.astype(np.float32)
+
+    # ---- database ----------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    @property
+    def keys(self) -> list[Hashable]:
+        return list(self._keys)
+
+    def add(self, frame_or_cloud, key: Hashable) -> None:
+        """Describe and insert one place under ``key`` (unique, JSON-serialisable for ``save``)."""
+        desc, rcs = self.describe(frame_or_cloud)
+        self.add_descriptor(desc, rcs, key)
+
+    def add_descriptor(self, descriptor: np.ndarray, rcs01: np.ndarray, key: Hashable) -> None:
+        if key in self._key_set:
+            raise DataError(f"key {key!r} is already in the place database")
+        desc = np.asarray(descriptor, dtype=np.float32).reshape(1, -1)
+        if self._index is None:
+            self._index = DescriptorIndex(desc.shape[1], self.config.retrieval)
+        self._index.add(desc)
+        rcs = np.asarray(rcs01, dtype=np.float32).reshape(-1)
+        self._keys.append(key)
+        self._key_set.add(key)
+        self._rcs.append(rcs)
+        self._hists.append(rcs_histogram(rcs, self._edges, self.config.rerank.epsilon))
+
+    def query(
+        self,
+        frame_or_cloud,
+        k: int = 5,
+        exclude: Collection[Hashable] | Callable[[Hashable], bool] | None = None,
+    ) -> list[PlaceCandidate]:
+        """The ``k`` best places, best first. Pure: the database is not modified.
+
+        ``exclude``: keys (or a predicate on keys) never to return, e.g. the most recent frames.
+        """
+        desc, rcs = self.describe(frame_or_cloud)
+        return self.query_descriptor(desc, rcs, k, exclude)
+
+    def query_descriptor(
+        self,
+        descriptor: np.ndarray,
+        rcs01: np.ndarray,
+        k: int = 5,
+        exclude: Collection[Hashable] | Callable[[Hashable], bool] | None = None,
+    ) -> list[PlaceCandidate]:
+        if k < 1:
+            raise DataError(f"k must be >= 1, got {k}")
+        if self._index is None or len(self._index) == 0:
+            return []
+        rr = self.config.rerank
+        if callable(exclude):
+            skip = exclude
+        else:
+            excluded = set(exclude or ())
+            n_ex = len(excluded & self._key_set)
+
+            def skip(key) -> bool:
+                return key in excluded
+
+        m = max(k, rr.top_m if rr.enabled else k)
+        m += len(self) if callable(exclude) else n_ex  # room for filtered-out keys
+        res = self._index.search(np.asarray(descriptor, np.float32).reshape(1, -1), m)
+        rows = [int(i) for i in res.indices[0] if not skip(self._keys[int(i)])]
+        dist = {int(i): float(d) for i, d in zip(res.indices[0], res.distances[0], strict=True)}
+        rows = rows[: max(k, rr.top_m) if rr.enabled else k]
+        d = np.array([dist[r] for r in rows])
+        if rr.enabled and rows:
+            q = rcs_histogram(np.asarray(rcs01), self._edges, rr.epsilon)
+            kl = kl_divergence(q[None, :], np.stack([self._hists[r] for r in rows]))
+            score = rr.alpha * kl + (1.0 - rr.alpha) * d
+        else:
+            score = d
+        order = np.argsort(score, kind="stable")[:k]
+        return [
+            PlaceCandidate(self._keys[rows[j]], float(d[j]), float(score[j]), rank)
+            for rank, j in enumerate(order)
+        ]
+
+    # ---- persistence -------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the database (descriptors, keys, RCS values, config) to one .npz, atomically."""
+        from radarslam.io.atomic import atomic_open
+
+        path = Path(path)
+        try:
+            keys_json = json.dumps(self._keys)
+        except TypeError:
+            raise DataError("place keys must be JSON-serialisable (str/int) to be saved") from None
+        dim = self._index.dim if self._index is not None else 0
+        desc = self._index.matrix if self._index is not None else np.zeros((0, 0), np.float32)
+        offsets = np.cumsum([0] + [len(r) for r in self._rcs]).astype(np.int64)
+        rcs = np.concatenate(self._rcs) if self._rcs else np.zeros(0, np.float32)
+        meta = {
+            "format": DB_FORMAT,
+            "config": self.config.model_dump(mode="json"),
+            "seq_len": self.seq_len,
+            "descriptor_dim": int(dim),
+            "checkpoint": str(self.checkpoint) if self.checkpoint else None,
+        }
+        with atomic_open(path, "wb") as fh:
+            np.savez_compressed(fh, descriptors=desc, rcs01=rcs, offsets=offsets,
+                                keys_json=np.array(keys_json), meta_json=np.array(json.dumps(meta)))  # fmt: skip
+        return path
+
+    @classmethod
+    def load(
+        cls,
+        path: str | Path,
+        model=None,
+        checkpoint: str | Path | None = None,
+        config: PlaceRecognizerConfig | None = None,
+    ) -> PlaceRecognizer:
+        """A recognizer holding a saved database (its stored config unless ``config`` is given)."""
+        path = Path(path)
+        if not path.is_file():
+            raise DataError(f"{path}: place database not found")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+            meta = json.loads(str(arrays["meta_json"]))
+            keys = json.loads(str(arrays["keys_json"]))
+        except (OSError, ValueError, KeyError, EOFError) as exc:
+            raise DataError(f"{path}: not a place database ({exc})") from None
+        if meta.get("format") != DB_FORMAT:
+            raise DataError(f"{path}: not a place database (format {meta.get('format')!r})")
+        if config is None:
+            config = build_config(PlaceRecognizerConfig, meta["config"], f"{path} (config)")
+        if model is None and checkpoint is None and meta.get("checkpoint"):
+            checkpoint = meta["checkpoint"]
+        rec = cls(model=model, checkpoint=checkpoint, config=config)
+        desc, offsets = arrays["descriptors"], arrays["offsets"]
+        if len(keys) != len(offsets) - 1 or (len(keys) and len(desc) != len(keys)):
+            raise DataError(f"{path}: {len(keys)} keys, {len(desc)} descriptors, inconsistent")
+        if rec.seq_len != meta.get("seq_len"):
+            raise CheckpointError(
+                f"{path}: database built with seq_len={meta.get('seq_len')}, model uses "
+                f"{rec.seq_len}"
+            )
+        rcs = arrays["rcs01"]
+        for i, key in enumerate(keys):
+            key = tuple(key) if isinstance(key, list) else key
+            rec.add_descriptor(desc[i], rcs[offsets[i] : offsets[i + 1]], key)
+        return rec
