@@ -78,7 +78,10 @@ class TrainConfig(StrictModel):
     cache_batch_size: int = Field(32, ge=1)  # frames per forward in descriptor passes
     seed: int = 1234
     device: str = "auto"  # "auto" (cuda if available, else cpu), "cpu", "cuda", "cuda:N"
-    threads: int | None = Field(None, ge=1)  # torch intra-op threads (None: torch default)
+    # torch intra-op threads (None: torch default). CPU training is bitwise reproducible only with
+    # 1 thread: multi-threaded convolution backward sums in a varying order, and the mining's
+    # threshold decisions amplify last-bit differences into different triplets a few epochs on.
+    threads: int | None = Field(None, ge=1)
     deterministic: bool = True  # cuDNN deterministic kernels
     select_after_epoch: int = Field(25, ge=0)  # best checkpoint only for epochs > this
     patience: int = Field(5, ge=0)  # epochs without val R@1 gain before stopping; 0 = never
@@ -478,6 +481,7 @@ def train(
     last_path, best_path = out_dir / "last.pt", out_dir / "best.pt"
     _check_data(data, model_cfg)
     dist_info = _setup_distributed(train_cfg.device)
+    threads_before = torch.get_num_threads()
     try:
         device = resolve_device(train_cfg.device, dist_info.local_rank)
         if train_cfg.threads:
@@ -687,6 +691,7 @@ def train(
             best_recall_at_1=best_r1,
         )
     finally:
+        torch.set_num_threads(threads_before)
         if dist_info.owns_group:
             torch.distributed.destroy_process_group()
 

@@ -1,0 +1,348 @@
+"""AutoPlace training: mining rules, loss, a short learning run, resume, DDP, bad input."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from place_recognition.checkpoint import load_model, read_checkpoint
+from place_recognition.dataset import PreparedData, build_sequences
+from place_recognition.models import ModelConfig, build_model
+from place_recognition.train import (
+    FrameStore,
+    TrainConfig,
+    Triplet,
+    _triplet_step_loss,
+    compute_descriptors,
+    load_train_config,
+    mine_triplets,
+    recall_at_n_from_descriptors,
+    train,
+)
+from radarslam.config import build_config
+from radarslam.errors import CheckpointError, ConfigError, DataError
+
+TINY = ModelConfig(
+    preset="tiny",
+    image_size_px=32,
+    widths=[4, 8],
+    convs_per_block=1,
+    seq_len=3,
+    use_temporal=True,
+    descriptor_dim=16,
+)
+# One thread: CPU convolution backward is only bitwise deterministic single-threaded.
+FAST = dict(epochs=4, select_after_epoch=0, patience=0, seed=1234, threads=1)
+
+
+def corridor_data(seed: int = 0, n_db: int = 60, size: int = 32, step_m: float = 2.0):
+    """Four drives along a 118 m corridor of random landmarks, seen as 32x32 occupancy at 1 m/px.
+
+    The database drive samples every 2 m on the centre line; train / val / test drives are shifted
+    along (0.5-1.5 m) and across (0.4-0.8 m) it, lose 25% of the landmarks per frame and gain 12
+    clutter cells, so places must be recognised from partial, noisy, shifted views.
+    """
+    rng = np.random.default_rng(seed)
+    half = size // 2
+    length = (n_db - 1) * step_m
+    landmarks = np.column_stack(
+        [rng.uniform(-half - 4, length + half + 4, 700), rng.uniform(-half, half, 700)]
+    )
+    drives = [("db", 0.0, 0.0, n_db), ("train", 1.0, 0.4, n_db - 1)]
+    drives += [("val", 0.5, -0.4, n_db - 1), ("test", 1.5, 0.8, n_db - 1)]
+    images, positions, names = [], [], []
+    for name, x0, y0, count in drives:
+        for k in range(count):
+            x = x0 + k * step_m
+            rel = landmarks - (x, y0)
+            rel = rel[rng.random(len(rel)) < 0.75]
+            r = np.round(rel[:, 0]).astype(int) + half
+            c = np.round(rel[:, 1]).astype(int) + half
+            ok = (r >= 0) & (r < size) & (c >= 0) & (c < size)
+            img = np.zeros((size, size), np.uint8)
+            img[r[ok], c[ok]] = 1
+            img[rng.integers(0, size, 12), rng.integers(0, size, 12)] = 1
+            images.append(img)
+            positions.append((x, y0))
+            names.append(name)
+    names = np.array(names)
+    n = len(names)
+    splits = {}
+    for split, tag in (("database", "db"), ("train", "train"), ("val", "val"), ("test", "test")):
+        idx = np.flatnonzero(names == tag)
+        splits[split] = idx if split == "database" else idx[2:]  # queries have two past frames
+    return PreparedData(
+        root=Path("synthetic-corridor"),
+        images=np.stack(images),
+        positions_xy=np.array(positions, dtype=float),
+        yaw_rad=np.zeros(n),
+        timestamps_us=np.arange(n, dtype=np.int64) * 500_000,
+        scene_names=names,
+        sample_tokens=np.array([f"token{i}" for i in range(n)]),
+        rcs=[np.zeros(0, np.float32)] * n,
+        sequences=build_sequences(names, 3),
+        splits=splits,
+    )
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return corridor_data()
+
+
+@pytest.fixture(scope="module")
+def full_run(data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("full")
+    return train(TrainConfig(**FAST), TINY, data, out, progress=False), out
+
+
+def _fresh_recall(data) -> float:
+    torch.manual_seed(1234)  # the same initial weights train() starts from
+    model = build_model(TINY)
+    db = compute_descriptors(model, data, data.splits["database"])
+    q = compute_descriptors(model, data, data.splits["val"])
+    rec = recall_at_n_from_descriptors(
+        torch.from_numpy(db), torch.from_numpy(q), data.splits["database"], data.splits["val"],
+        data, [1],
+    )  # fmt: skip
+    return rec[1]
+
+
+# ---------------------------------------------------------------------------------------------
+# mining and loss
+
+
+def _random_unit(n, d, seed):
+    x = np.random.default_rng(seed).normal(size=(n, d)).astype(np.float32)
+    return torch.from_numpy(x / np.linalg.norm(x, axis=1, keepdims=True))
+
+
+def test_mining_follows_the_reference_rules(data):
+    db_frames = data.splits["database"]
+    q_frames = data.splits["train"]
+    db_desc = _random_unit(len(db_frames), 8, 1)
+    q_desc = _random_unit(len(q_frames), 8, 2)
+    # neg_sample large enough to draw every pool frame: the result is then fully determined
+    cfg = TrainConfig(neg_sample=20_000, neg_candidates=1000)
+    triplets, skipped = mine_triplets(
+        q_desc, q_frames, db_desc, db_frames, data, cfg, np.random.default_rng(0)
+    )
+    assert skipped + len(triplets) == len(q_frames) and len(triplets) > 40
+    row = {int(f): i for i, f in enumerate(db_frames)}
+    for t in triplets:
+        qi = int(np.flatnonzero(q_frames == t.query)[0])
+        dist = torch.cdist(q_desc[qi : qi + 1], db_desc)[0].numpy()
+        pos = data.positives(t.query)
+        d_pos = dist[[row[p] for p in pos]].min()
+        assert t.positive in pos and dist[row[t.positive]] == pytest.approx(d_pos, abs=1e-6)
+        pool = data.negatives_pool(t.query)
+        assert set(t.negatives) <= set(pool.tolist())
+        assert np.all(np.linalg.norm(data.positions_xy[t.negatives] - data.positions_xy[t.query],
+                                     axis=1) > 18.0)  # fmt: skip
+        d_pool = np.sort(dist[[row[p] for p in pool]])
+        violating = d_pool[d_pool < d_pos + cfg.margin][: cfg.num_negatives]
+        assert np.allclose(dist[[row[n] for n in t.negatives]], violating, atol=1e-6)
+    # descriptors that encode the position exactly: no negative violates a small margin
+    angle = data.positions_xy[:, 0] / 40
+    enc = torch.from_numpy(np.column_stack([np.cos(angle), np.sin(angle)]).astype(np.float32))
+    cfg = TrainConfig(margin=0.01)
+    triplets, skipped = mine_triplets(
+        enc[q_frames], q_frames, enc[db_frames], db_frames, data, cfg, np.random.default_rng(0)
+    )
+    assert triplets == [] and skipped == len(q_frames)
+
+
+def test_loss_is_sum_over_triplets_divided_by_batch_negatives(data):
+    torch.manual_seed(0)
+    model = build_model(TINY)
+    store = FrameStore(data.images, torch.device("cpu"), TINY)
+    trips = [
+        Triplet(query=70, positive=5, negatives=np.array([40, 50, 55])),
+        Triplet(query=90, positive=25, negatives=np.array([1])),
+    ]
+    margin = 0.3
+    got = _triplet_step_loss(model, store, data.sequences, trips, 3, margin, total_negatives=7)
+    frames = torch.from_numpy(data.images[data.sequences]).float()[:, :, None]
+    with torch.no_grad():
+        desc = model(frames)
+    want = 0.0
+    for t in trips:
+        for n in t.negatives:
+            d_p = torch.linalg.norm(desc[t.query] - desc[t.positive])
+            d_n = torch.linalg.norm(desc[t.query] - desc[n])
+            want += float(F.relu(d_p - d_n + margin))
+    assert float(got.detach()) == pytest.approx(want / 7, rel=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------
+# training, selection, resume
+
+
+def test_short_training_learns_places(data, full_run):
+    result, out = full_run
+    h = result.history
+    assert [r["epoch"] for r in h] == [1, 2, 3, 4]
+    assert h[-1]["loss"] < 0.5 * h[0]["loss"]  # 0.302 -> 0.091 (pinned run)
+    initial = _fresh_recall(data)
+    assert initial == pytest.approx(0.351, abs=1e-3)
+    assert result.best_recall_at_1 == pytest.approx(0.825, abs=1e-3)
+    assert result.best_recall_at_1 > initial + 0.3
+    assert result.best_epoch == 3
+    assert [r["lr"] for r in h] == [0.01] * 4
+    model, _, meta = load_model(result.best_checkpoint, expect=TINY)
+    assert meta["epoch"] == 3 and meta["val_recall"]["1"] == result.best_recall_at_1
+    assert meta["train_config"]["epochs"] == 4
+    # the best checkpoint reproduces the validation number it was selected with
+    db = compute_descriptors(model, data, data.splits["database"])
+    q = compute_descriptors(model, data, data.splits["val"])
+    rec = recall_at_n_from_descriptors(
+        torch.from_numpy(db), torch.from_numpy(q), data.splits["database"], data.splits["val"],
+        data, [1],
+    )  # fmt: skip
+    assert rec[1] == result.best_recall_at_1
+    assert (out / "history.json").is_file() and result.last_checkpoint.is_file()
+
+
+def test_selection_waits_for_select_after_epoch_and_lr_steps(data, tmp_path):
+    cfg = TrainConfig(**{**FAST, "select_after_epoch": 3, "lr_step_epochs": 2})
+    result = train(cfg, TINY, data, tmp_path, progress=False)
+    # epoch 3 has the higher R@1 (0.825 vs 0.789) but selection only starts after epoch 3
+    assert result.history[2]["val_recall@1"] > result.history[3]["val_recall@1"]
+    assert result.best_epoch == 4
+    assert [r["lr"] for r in result.history] == [0.01, 0.01, 0.005, 0.005]
+
+
+def test_patience_stops_early(data, tmp_path):
+    cfg = TrainConfig(**{**FAST, "epochs": 8, "patience": 1, "select_after_epoch": 2})
+    result = train(cfg, TINY, data, tmp_path, progress=False)
+    r1 = [round(r["val_recall@1"], 3) for r in result.history]
+    # epoch 3 (the first that may be selected) is best; epoch 4 does not beat it -> stop
+    assert r1 == [0.561, 0.667, 0.825, 0.684]
+    assert result.best_epoch == 3
+
+
+def test_resume_continues_exactly(data, full_run, tmp_path):
+    result, _ = full_run
+    first = train(TrainConfig(**{**FAST, "epochs": 2}), TINY, data, tmp_path, progress=False)
+    assert len(first.history) == 2
+    resumed = train(TrainConfig(**FAST), TINY, data, tmp_path, resume=True, progress=False)
+    assert [r["epoch"] for r in resumed.history] == [1, 2, 3, 4]
+    for a, b in zip(resumed.history, result.history, strict=True):
+        assert a["loss"] == pytest.approx(b["loss"], rel=1e-5)
+        assert a["val_recall@1"] == b["val_recall@1"]
+    assert resumed.best_epoch == result.best_epoch
+    assert read_checkpoint(tmp_path / "last.pt")["training_state"]["epoch"] == 4
+    # resuming a finished run is a no-op that still reports the best checkpoint
+    again = train(TrainConfig(**FAST), TINY, data, tmp_path, resume=True, progress=False)
+    assert again.history == resumed.history and again.best_epoch == result.best_epoch
+
+
+def test_resume_refuses_mismatches(data, full_run, tmp_path):
+    _, out = full_run
+    with pytest.raises(CheckpointError, match=r"train config differs .* in lr"):
+        train(TrainConfig(**{**FAST, "lr": 0.02}), TINY, data, out, resume=True, progress=False)
+    wider = TINY.model_copy(update={"descriptor_dim": 32})
+    with pytest.raises(CheckpointError, match="model config differs"):
+        train(TrainConfig(**FAST), wider, data, out, resume=True, progress=False)
+    with pytest.raises(CheckpointError, match=r"last\.pt: checkpoint file does not exist"):
+        train(TrainConfig(**FAST), TINY, data, tmp_path, resume=True, progress=False)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ddp_world_size_one_matches_the_plain_run(data, full_run, tmp_path, monkeypatch):
+    import torch.distributed as dist
+
+    result, _ = full_run
+    env = {"WORLD_SIZE": "1", "RANK": "0", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1"}
+    for key, value in {**env, "MASTER_PORT": str(_free_port())}.items():
+        monkeypatch.setenv(key, value)
+    backends = []
+    real_init = dist.init_process_group
+
+    def spy(*args, **kwargs):
+        backends.append(kwargs.get("backend"))
+        return real_init(*args, **kwargs)
+
+    monkeypatch.setattr(dist, "init_process_group", spy)
+    cfg = TrainConfig(**{**FAST, "epochs": 2, "device": "cpu"})
+    ddp = train(cfg, TINY, data, tmp_path, progress=False)
+    assert backends == ["gloo"]
+    assert not dist.is_initialized()  # the group it created is torn down again
+    for a, b in zip(ddp.history, result.history[:2], strict=True):
+        assert a["loss"] == pytest.approx(b["loss"], rel=1e-5)
+        assert a["val_recall@1"] == b["val_recall@1"]
+    assert (tmp_path / "best.pt").is_file() and (tmp_path / "last.pt").is_file()
+
+
+# ---------------------------------------------------------------------------------------------
+# descriptors, configs, bad input
+
+
+def test_compute_descriptors_matches_model_forward(data):
+    torch.manual_seed(3)
+    model = build_model(TINY)
+    idx = data.splits["val"][:7]
+    got = compute_descriptors(model, data, idx, batch_size=5)
+    assert got.shape == (7, 16) and got.dtype == np.float32
+    with torch.no_grad():
+        want = model.eval()(torch.from_numpy(data.frames_float(idx, seq_len=3))).numpy()
+    assert np.allclose(got, want, atol=1e-5)
+    assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)
+
+
+def test_train_presets_and_invalid_configs():
+    paper = load_train_config("paper")
+    assert (paper.epochs, paper.select_after_epoch, paper.patience, paper.batch_size) == (
+        50, 25, 5, 8,
+    )  # fmt: skip
+    assert paper.margin == pytest.approx(0.1**0.5)
+    assert load_train_config("compact_cpu").micro_batch_size is not None
+    with pytest.raises(ConfigError, match="select_after_epoch=25 must be below epochs=10"):
+        build_config(TrainConfig, {"epochs": 10}, "train.yaml")
+    with pytest.raises(ConfigError, match="device must be"):
+        build_config(TrainConfig, {"device": "gpu"}, "train.yaml")
+    with pytest.raises(ConfigError, match="unknown key 'lr_decay'"):
+        build_config(TrainConfig, {"lr_decay": 0.1}, "train.yaml")
+    with pytest.raises(ConfigError, match="unknown train preset"):
+        load_train_config("nope")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA present")
+def test_cuda_without_cuda_is_config_error(data, tmp_path):
+    with pytest.raises(ConfigError, match="CUDA is not available"):
+        train(TrainConfig(**{**FAST, "device": "cuda"}), TINY, data, tmp_path, progress=False)
+
+
+def test_bad_data_is_data_error(data, tmp_path):
+    import dataclasses
+
+    bad = dataclasses.replace(data, images=data.images * 255)
+    with pytest.raises(DataError, match=r"occupancy in \[0, 1\], got \[0, 255\]"):
+        train(TrainConfig(**FAST), TINY, bad, tmp_path, progress=False)
+    short = dataclasses.replace(data, sequences=data.sequences[:, -2:])
+    with pytest.raises(DataError, match="hold 2 frames but the model needs 3"):
+        train(TrainConfig(**FAST), TINY, short, tmp_path, progress=False)
+    no_val = dataclasses.replace(data, splits={**data.splits, "val": np.zeros(0, np.int64)})
+    with pytest.raises(DataError, match="split 'val' is empty"):
+        train(TrainConfig(**FAST), TINY, no_val, tmp_path, progress=False)
+    wrong_size = TINY.model_copy(update={"image_size_px": 64})
+    with pytest.raises(DataError, match="model expects"):
+        train(TrainConfig(**FAST), wrong_size, data, tmp_path, progress=False)
