@@ -58,14 +58,8 @@ class PlaceRecognizer:
         if model is None:
             path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
             if not path.is_file():
-                raise CheckpointError(
-                    f"{path}: checkpoint not found"
-                    + (
-                        " (the default compact weights are not installed)"
-                        if checkpoint is None
-                        else ""
-                    )  # fmt: skip
-                )
+                hint = "" if checkpoint is not None else " (default compact weights not installed)"
+                raise CheckpointError(f"{path}: checkpoint not found{hint}")
             from place_recognition.checkpoint import load_model
 
             model, _, _ = load_model(path, device=self.config.device)
@@ -264,8 +258,14 @@ class PlaceRecognizer:
             "checkpoint": str(self.checkpoint) if self.checkpoint else None,
         }
         with atomic_open(path, "wb") as fh:
-            np.savez_compressed(fh, descriptors=desc, rcs01=rcs, offsets=offsets,
-                                keys_json=np.array(keys_json), meta_json=np.array(json.dumps(meta)))  # fmt: skip
+            np.savez_compressed(
+                fh,
+                descriptors=desc,
+                rcs01=rcs,
+                offsets=offsets,
+                keys_json=np.array(keys_json),
+                meta_json=np.array(json.dumps(meta)),
+            )
         return path
 
     @classmethod

@@ -26,7 +26,7 @@ def test_exact_pixel_of_points():
 def test_crop_and_bounds():
     cfg = ImageConfig()
     xy = np.array([[99.5, 0.0], [0.0, 99.6], [-100.6, 0.0], [-100.4, 5.0], [150.0, 1.0]])
-    rows, cols, keep = pixel_indices(xy, cfg)
+    _, _, keep = pixel_indices(xy, cfg)
     # 99.5 rounds to 100 -> row 200, outside; -100.4 rounds to -100 but is beyond the 100 m crop
     assert keep.tolist() == [False, False, False, False, False]
     small = ImageConfig(size_px=20, resolution_m=2.0, crop_m=15.0)
