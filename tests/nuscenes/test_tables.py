@@ -1,0 +1,191 @@
+"""Compact, lazy radar tables: content, streaming parser, on-disk cache, and bad tables."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+from mini_dataroot import VERSION, tok
+
+from radarslam.errors import DataError
+from radarslam.nuscenes import tables as tables_mod
+from radarslam.nuscenes.tables import NuScenesTables, TokenIndex
+from radarslam.types import RADAR_CHANNELS
+
+
+def test_radar_index_content(mini):
+    t = NuScenesTables(mini.dataroot, VERSION, use_cache=False)
+    radar = t.radar
+    all_tokens = [tok for toks in mini.sweeps.values() for tok in toks]
+    assert len(radar) == len(all_tokens) == 769  # pinned: 4 scenes x 5 radars, one gap
+    assert sorted(radar.token.astype(str)) == sorted(all_tokens)  # lidar records skipped
+    for i in (0, 17, 500, len(radar) - 1):
+        tok = radar.token[i].decode()
+        w_from_s = t.world_from_ego(i) @ t.ego_from_sensor(int(radar.calibrated_sensor[i]))
+        np.testing.assert_allclose(w_from_s, mini.world_from_sensor[tok], atol=1e-9)
+        ch = RADAR_CHANNELS[radar.channel[i]]
+        assert f"/{ch}/" in radar.filename[i].decode()
+    # chains: every next's prev is the record itself
+    has_next = radar.next >= 0
+    assert (radar.prev[radar.next[has_next]] == np.flatnonzero(has_next)).all()
+    assert int((radar.prev < 0).sum()) == 20  # one chain head per scene and radar
+    assert radar.nbytes < 300 * len(radar)  # compact: no Python object per record
+
+
+@pytest.mark.parametrize("compact", [False, True])
+def test_streaming_parser_is_chunk_and_whitespace_independent(mini, clone, monkeypatch, compact):
+    ref = NuScenesTables(mini.dataroot, VERSION, use_cache=False).radar
+    root = clone()
+    for name in ("sample_data", "ego_pose"):
+        p = root / VERSION / f"{name}.json"
+        recs = json.loads(p.read_text())
+        text = json.dumps(recs, separators=(",", ":")) if compact else json.dumps(recs, indent=4)
+        p.write_text(text)
+    monkeypatch.setattr(tables_mod, "_CHUNK_BYTES", 97)  # records straddle every chunk boundary
+    got = NuScenesTables(root, VERSION, use_cache=False).radar
+    for name, arr in ref.arrays().items():
+        np.testing.assert_array_equal(getattr(got, name), arr, err_msg=name)
+
+
+def test_cache_roundtrip_and_invalidation(mini, tmp_path, caplog):
+    cache = tmp_path / "cache"
+    kw = {"use_cache": True, "cache_dir": cache, "cache_min_bytes": 0}
+    first = NuScenesTables(mini.dataroot, VERSION, **kw)
+    ref = first.radar
+    assert first.cache_hit is False
+    files = list(cache.glob("*.npz"))
+    assert len(files) == 1 and not list(mini.dataroot.rglob("*.npz"))
+    second = NuScenesTables(mini.dataroot, VERSION, **kw)
+    got = second.radar
+    assert second.cache_hit is True
+    for name, arr in ref.arrays().items():
+        np.testing.assert_array_equal(getattr(got, name), arr, err_msg=name)
+    # a damaged cache is rebuilt with a warning, never fatal
+    files[0].write_bytes(b"not a zip")
+    third = NuScenesTables(mini.dataroot, VERSION, **kw)
+    assert len(third.radar) == len(ref) and third.cache_hit is False
+    assert "ignoring unreadable radar index cache" in caplog.text
+    # below the size threshold nothing is written
+    cache2 = tmp_path / "cache2"
+    NuScenesTables(mini.dataroot, VERSION, use_cache=True, cache_dir=cache2).radar  # noqa: B018
+    assert not cache2.exists()
+
+
+def test_cache_key_follows_the_tables(mini, clone, tmp_path):
+    root = clone()
+    kw = {"use_cache": True, "cache_dir": tmp_path / "c", "cache_min_bytes": 0}
+    before = NuScenesTables(root, VERSION, **kw)
+    sd = mini.sweeps[("scene-0003", "RADAR_FRONT")][0]
+    row = before.radar_tokens.find(sd)
+    x0 = before.radar.ego_translation[row, 0]
+    p = root / VERSION / "ego_pose.json"
+    recs = json.loads(p.read_text())
+    next(r for r in recs if r["token"] == tok("ego", sd))["translation"][0] += 100.0
+    p.write_text(json.dumps(recs, indent=0))
+    st = p.stat()
+    os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    after = NuScenesTables(root, VERSION, **kw)
+    assert after.radar.ego_translation[row, 0] == pytest.approx(x0 + 100.0)
+    assert after.cache_hit is False and len(list((tmp_path / "c").glob("*.npz"))) == 2
+
+
+def test_token_index():
+    toks = np.array([b"b", b"a", b"c"])
+    idx = TokenIndex(toks)
+    assert idx.find("a") == 1 and idx.find("c") == 2 and idx.find("zz") == -1
+    assert idx.find("\u00e9") == -1
+    assert idx.find_many(np.array([b"c", b"x", b"b"])).tolist() == [2, -1, 0]
+    with pytest.raises(DataError, match="appears more than once"):
+        TokenIndex(np.array([b"a", b"b", b"a"]), what="sample_data.json")
+
+
+# ---- bad input -------------------------------------------------------------------------------
+def test_missing_dataroot_and_version(mini, tmp_path):
+    with pytest.raises(DataError, match="dataroot does not exist"):
+        NuScenesTables(tmp_path / "nope")
+    with pytest.raises(DataError, match=r"unknown nuScenes version 'v2\.0'"):
+        NuScenesTables(mini.dataroot, "v2.0")
+    with pytest.raises(DataError, match=r"v1.0-trainval: version folder is missing \(present"):
+        NuScenesTables(mini.dataroot, "v1.0-trainval")
+
+
+def test_missing_table(clone):
+    root = clone()
+    (root / VERSION / "ego_pose.json").unlink()
+    with pytest.raises(DataError, match=r"ego_pose\.json: table file is missing"):
+        NuScenesTables(root, VERSION)
+
+
+def _damage(root, name, fn):
+    p = root / VERSION / f"{name}.json"
+    p.write_bytes(fn(p.read_bytes()))
+
+
+@pytest.mark.parametrize(
+    ("name", "fn", "match"),
+    [
+        ("scene", lambda b: b[: len(b) // 2], r"scene\.json: corrupt JSON \(line"),
+        ("log", lambda b: b'{"a": 1}', r"log\.json: expected a JSON list"),
+        ("sample", lambda b: b"[1, 2]", r"sample\.json: record 0 is int"),
+        (
+            "sample_data",
+            lambda b: b[: len(b) - 300],
+            r"sample_data\.json: corrupt JSON \(truncated",
+        ),
+        ("sample_data", lambda b: b.replace(b"},", b"} x,", 1), r"sample_data\.json: corrupt JSON"),
+        ("sample_data", lambda b: b.replace(b"},", b"}", 1), r"sample_data\.json: corrupt JSON"),
+        ("ego_pose", lambda b: b"{" + b, r"ego_pose\.json: corrupt JSON"),
+        ("ego_pose", lambda b: b[1:], r"ego_pose\.json: corrupt JSON \(expected '\['"),
+        ("ego_pose", lambda b: b + b"]", r"ego_pose\.json: corrupt JSON \(unexpected"),
+        ("sample_data", lambda b: b.replace(b'"timestamp"', b'"ts"'), r"has no 'timestamp' field"),
+        ("sample_data", lambda b: b.replace(b'"pcd"', b"pcd"), r"corrupt JSON in the record"),
+        ("calibrated_sensor", lambda b: b.replace(b'"rotation"', b'"rot"'), r"has no 'rotation'"),
+    ],
+)
+def test_corrupt_tables(clone, name, fn, match):
+    root = clone()
+    _damage(root, name, fn)
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    with pytest.raises(DataError, match=match) as exc:
+        _ = t.radar
+    assert "\n" not in str(exc.value)
+
+
+def _edit_records(root, name, edit):
+    p = root / VERSION / f"{name}.json"
+    recs = json.loads(p.read_text())
+    edit(recs)
+    p.write_text(json.dumps(recs, indent=0))
+
+
+def _radar(recs):
+    return next(r for r in recs if "RADAR_" in r.get("filename", "RADAR_"))
+
+
+@pytest.mark.parametrize(
+    ("name", "edit", "match"),
+    [
+        (
+            "sample_data",
+            lambda rs: _radar(rs).update(sample_token="x"),
+            "sample_token 'x' is not in",
+        ),
+        ("sample_data", lambda rs: _radar(rs).update(next="x"), "next 'x' is not a radar"),
+        ("sample_data", lambda rs: _radar(rs).update(timestamp=1.5), "timestamp 1.5 is not an int"),
+        ("sample_data", lambda rs: _radar(rs).update(calibrated_sensor_token="q"), "'q' is not in"),
+        ("ego_pose", lambda rs: rs.pop(-1), r"ego_pose\.json: ego pose .* is missing"),
+        ("ego_pose", lambda rs: rs[-1].update(rotation=[0, 0, 0, 0]), "degenerate"),
+        ("ego_pose", lambda rs: rs[-1].update(translation=[1, 2]), "expected 3 numbers"),
+        ("sample", lambda rs: rs[0].update(scene_token="s"), "refers to scene 's'"),
+        ("scene", lambda rs: rs[0].update(log_token="l"), "refers to log 'l'"),
+        ("scene", lambda rs: rs[1].update(name=rs[0]["name"]), "appears twice"),
+    ],
+)
+def test_inconsistent_tables(clone, name, edit, match):
+    root = clone()
+    _edit_records(root, name, edit)
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    with pytest.raises(DataError, match=match):
+        _ = t.radar
