@@ -335,16 +335,17 @@ class DopplerEstimator:
             perp = np.array([-t[1], t[0]])
             rows.append(np.column_stack([ue, ue @ perp]))
             rhs.append(-vr[ok])
-            lever.append(np.broadcast_to(perp, (int(ok.sum()), 2)))
+            lever.append(perp)
             owner.append(np.column_stack([np.full(int(ok.sum()), k), np.flatnonzero(ok)]))
         channels = tuple(sw.channel for sw in sweeps)
         if not rows:
             return self._invalid_frame(sizes, channels, 0)
         a = np.concatenate(rows)
         b = np.concatenate(rhs)
-        perp_all = np.concatenate(lever)
         own = np.concatenate(owner)
-        inl, x, cov, ego_static, yaw_obs = self._solve_joint(a, b, perp_all)
+        # Per point, which radar's lever arm: the relative threshold needs each sensor's speed.
+        radar_of = np.repeat(np.arange(len(lever)), [len(r) for r in rhs])
+        inl, x, cov, ego_static, yaw_obs = self._solve_joint(a, b, np.array(lever), radar_of)
         if x is None:
             return self._invalid_frame(sizes, channels, len(a))
         masks = {sw.channel: np.zeros(len(sw), dtype=bool) for sw in sweeps}
@@ -418,7 +419,7 @@ class DopplerEstimator:
         schur = info[2, 2] - info[2, :2] @ np.linalg.solve(info[:2, :2], info[:2, 2])
         return True, bool(schur > 1.0 / _YAW_OBSERVABLE_SIGMA_RADPS**2)
 
-    def _solve_joint(self, a: np.ndarray, b: np.ndarray, perp: np.ndarray):
+    def _solve_joint(self, a: np.ndarray, b: np.ndarray, levers: np.ndarray, radar_of: np.ndarray):
         c = self.config
         n = len(a)
         if n < c.min_points:
@@ -442,7 +443,9 @@ class DopplerEstimator:
 
         def inliers(x: np.ndarray) -> np.ndarray:
             # Per point, the sensor speed |v + w x t_i| sets the relative threshold.
-            speed = np.linalg.norm(x[:2] + x[2] * perp, axis=1)
+            if c.relative_threshold is None:
+                return np.abs(a @ x - b) < c.inlier_threshold_mps
+            speed = np.linalg.norm(x[:2] + x[2] * levers, axis=1)[radar_of]
             thr = _threshold(speed, c.inlier_threshold_mps, c.relative_threshold)
             return np.abs(a @ x - b) < thr
 
@@ -452,7 +455,8 @@ class DopplerEstimator:
         p = 3 if yaw_ok else 2
         if n < p:
             return None, None, None, False, False
-        samples = np.stack([gen.choice(n, size=p, replace=False) for _ in range(k)])
+        # Duplicate indices give a singular minimal set, which the determinant test drops.
+        samples = gen.integers(0, n, size=(k, p))
         best_x, best_count = None, -1
         am = a[samples][:, :, :p]  # (k, p, p)
         bm = b[samples]
@@ -462,9 +466,16 @@ class DopplerEstimator:
             hyp = np.linalg.solve(am[good], bm[good][..., None])[..., 0]
             if p == 2:
                 hyp = np.column_stack([hyp, np.zeros(len(hyp))])
-            speed = np.linalg.norm(hyp[None, :, :2] + hyp[None, :, 2:3] * perp[:, None, :], axis=2)
-            thr = _threshold(speed, c.inlier_threshold_mps, c.relative_threshold)
-            counts = (np.abs(a @ hyp.T - b[:, None]) < thr).sum(axis=0)
+            res = np.abs(a @ hyp.T - b[:, None])  # (n, K)
+            if c.relative_threshold is None:
+                counts = (res < c.inlier_threshold_mps).sum(axis=0)
+            else:
+                # Speed of each radar under each hypothesis, (radars, K), then per point.
+                speed = np.linalg.norm(
+                    hyp[None, :, :2] + hyp[None, :, 2:3] * levers[:, None, :], axis=2
+                )
+                thr = _threshold(speed, c.inlier_threshold_mps, c.relative_threshold)[radar_of]
+                counts = (res < thr).sum(axis=0)
             best = int(np.argmax(counts))
             best_x, best_count = hyp[best], counts[best]
         if best_x is None or best_count < p:

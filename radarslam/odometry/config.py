@@ -1,0 +1,82 @@
+"""Configuration of the radar odometry front end (``configs/odometry/*.yaml``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from radarslam.config import StrictModel
+from radarslam.odometry.doppler import DopplerConfig
+
+
+class PointsConfig(StrictModel):
+    """Which points enter registration, and the reader's state filters."""
+
+    min_range_m: float = Field(1.0, ge=0)
+    max_range_m: float = Field(100.0, gt=0)
+    #: Keep only Doppler inliers (static world) for registration.
+    dynamic_free: bool = True
+    #: De-skew each radar's points to the frame's common time with the Doppler motion.
+    deskew: bool = True
+    #: Reader filters (None = no filter on that field). dyn_prop is not filtered: the Doppler
+    #: inlier test decides what is static, and the sensor's "stopped" class is static too.
+    invalid_states: list[int] | None = Field(default_factory=lambda: [0])
+    dynprop_states: list[int] | None = None
+    ambig_states: list[int] | None = Field(default_factory=lambda: [3])
+
+
+class RegistrationConfig(StrictModel):
+    """kiss-icp's scan-to-map registration (its own C++ code and voxel-hash map)."""
+
+    enabled: bool = True
+    voxel_size_m: float = Field(1.0, gt=0)
+    max_points_per_voxel: int = Field(20, ge=1)
+    max_num_iterations: int = Field(100, ge=1)
+    convergence_criterion: float = Field(1e-4, gt=0)
+    #: kiss-icp's adaptive threshold (fed our Doppler prediction's deviation) or a fixed sigma.
+    threshold: Literal["adaptive", "fixed"] = "fixed"
+    fixed_sigma_m: float = Field(1.0, gt=0)
+    min_sigma_m: float = Field(0.5, gt=0)
+    initial_sigma_m: float = Field(2.0, gt=0)
+    min_motion_m: float = Field(0.1, ge=0)
+    #: Fewer source points than this: registration is skipped, the Doppler motion is used.
+    min_source_points: int = Field(15, ge=3)
+    #: Floor of the point residual sigma in the alignment covariance.
+    point_sigma_m: float = Field(0.3, gt=0)
+    line_neighbors: int = Field(5, ge=2)
+    #: Rebuild the KD-tree mirror of the map used for covariances every N map updates.
+    mirror_every: int = Field(5, ge=1)
+
+
+class FusionConfig(StrictModel):
+    """Error-state Kalman filter on SE(2): Doppler drives the prediction, ICP is the measurement."""
+
+    #: "kalman": the fusion below; "doppler": dead reckoning only (no registration);
+    #: "icp": take the registration as is whenever it ran (Doppler only seeds it).
+    mode: Literal["kalman", "doppler", "icp"] = "kalman"
+    #: Mahalanobis gate on the ICP innovation (chi-square, 3 dof; 16.27 = 99.9 %).
+    gate_chi2: float = Field(16.27, gt=0)
+    #: After this many consecutive rejections ICP is accepted again (re-localise in the map).
+    max_consecutive_rejections: int = Field(10, ge=1)
+    icp_cov_scale: float = Field(1.0, gt=0)
+    doppler_cov_scale: float = Field(1.0, gt=0)
+    #: Random-walk process noise of the twist between frames, per sqrt(second): (vx, vy, yaw).
+    process_noise: list[float] = Field(default_factory=lambda: [0.05, 0.05, 0.005])
+    #: Twist variance added per second while the Doppler fit is invalid (constant velocity held).
+    invalid_doppler_growth: list[float] = Field(default_factory=lambda: [1.0, 1.0, 0.05])
+    #: Segments of a multi-scene run restart (from initial_pose) after a gap longer than this.
+    max_gap_s: float = Field(1.0, gt=0)
+
+
+class OdometryConfig(StrictModel):
+    """The whole front end. ``initial_pose``: the first frame's pose is its ground-truth
+    ``world_from_ego`` (so estimates live in the nuScenes global frame), or the identity."""
+
+    initial_pose: Literal["ground_truth", "identity"] = "ground_truth"
+    doppler: DopplerConfig = Field(
+        default_factory=lambda: DopplerConfig(static_velocity="refit", min_points=4)
+    )
+    points: PointsConfig = Field(default_factory=PointsConfig)
+    registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
+    fusion: FusionConfig = Field(default_factory=FusionConfig)
