@@ -69,7 +69,7 @@ def multilap_circuit(
         i = j - poses_per_lap
         meas = invert(gt[i]) @ gt[j] @ _noise_pose(rng, loop_sig)
         loops.append(SyntheticLoop(i, j, meas, True))
-    num_false = int(round(false_loop_fraction * len(loops)))
+    num_false = round(false_loop_fraction * len(loops))
     for _ in range(num_false):
         while True:
             j = int(rng.integers(poses_per_lap // 4, n))
@@ -88,3 +88,44 @@ def multilap_circuit(
         loops=loops,
         loop_information=np.diag(1.0 / loop_sig**2),
     )
+
+
+def random_place(
+    seed: int,
+    extent_m: float = 60.0,
+    num_walls: int = 8,
+    num_poles: int = 25,
+    points_per_m: float = 1.5,
+) -> np.ndarray:
+    """Noise-free structure of a place: points along random wall segments plus poles, (K, 2)."""
+    rng = np.random.default_rng(seed)
+    pts = []
+    for _ in range(num_walls):
+        a = rng.uniform(-extent_m / 2, extent_m / 2, size=2)
+        ang = rng.uniform(0, np.pi)
+        length = rng.uniform(8, 30)
+        b = a + length * np.array([np.cos(ang), np.sin(ang)])
+        s = rng.uniform(0, 1, size=int(length * points_per_m))
+        pts.append(a + s[:, None] * (b - a))
+    pts.append(rng.uniform(-extent_m / 2, extent_m / 2, size=(num_poles, 2)))
+    return np.concatenate(pts)
+
+
+def observe_place(
+    structure_xy: np.ndarray,
+    view_from_place: np.ndarray,
+    seed: int,
+    noise_m: float = 0.15,
+    dropout: float = 0.3,
+    clutter_fraction: float = 0.1,
+    extent_m: float = 60.0,
+) -> np.ndarray:
+    """A radar-like local map of a place seen from another pose: the structure resampled with
+    point dropout, Gaussian noise and uniform clutter, expressed in the ``view`` frame (N, 2)."""
+    rng = np.random.default_rng(seed)
+    keep = rng.uniform(size=len(structure_xy)) >= dropout
+    pts = structure_xy[keep] + rng.normal(scale=noise_m, size=(int(keep.sum()), 2))
+    clutter = rng.uniform(-extent_m / 2, extent_m / 2, size=(int(clutter_fraction * len(pts)), 2))
+    pts = np.concatenate([pts, clutter])
+    view = np.asarray(view_from_place, dtype=np.float64)
+    return pts @ view[:2, :2].T + view[:2, 3]

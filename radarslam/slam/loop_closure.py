@@ -1,0 +1,375 @@
+"""Geometric verification of place-recognition candidates by registering accumulated local maps.
+
+Radar local maps are sparse and places are often revisited in the opposite direction, so one ICP
+from one initial guess is not enough. :class:`LoopVerifier` therefore
+
+1. voxel-downsamples both (N, 2) maps;
+2. tries heading hypotheses every ``heading_step_deg`` around the initial guess (the default 15
+   includes 0, +-90 and 180 deg); for each, a coarse 2-D correlative search over translation
+   (FFT cross-correlation of the rotated query's occupancy with the candidate's blurred occupancy,
+   within ``search_radius_m``) places the query;
+3. refines the ``refine_top_k`` best hypotheses by ICP (coarse then fine correspondence distance;
+   open3d point-to-point or small_gicp) and keeps the one with the highest fitness;
+4. accepts when fitness, inlier RMSE and grid overlap all pass their thresholds, and derives the
+   loop's information matrix from the point-to-point Hessian of the final correspondences.
+
+Poses: the result is ``candidate_from_query`` (4x4, planar). For the pose graph that is
+``add_loop(candidate_key, query_key, candidate_from_query, information)``. The information matrix
+is in Pose2 tangent order (x, y, theta) for gtsam's right-perturbation convention.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from radarslam.config import StrictModel
+from radarslam.errors import DataError
+from radarslam.geometry import se2_to_matrix
+from radarslam.slam.records import LoopCandidate, LoopVerification, NodeKey
+
+__all__ = [
+    "LoopCandidate",
+    "LoopVerification",
+    "LoopVerifier",
+    "LoopVerifierConfig",
+    "NodeKey",
+]
+
+
+class LoopVerifierConfig(StrictModel):
+    backend: Literal["open3d", "small_gicp"] = "open3d"
+    voxel_size_m: float = Field(0.5, gt=0)
+    min_points: int = Field(30, ge=3)
+    heading_step_deg: float = Field(15.0, gt=0, le=360)
+    correlative_search: bool = True
+    search_radius_m: float = Field(15.0, ge=0)
+    grid_cell_m: float = Field(2.0, gt=0)
+    refine_top_k: int = Field(3, ge=1)
+    coarse_max_correspondence_m: float = Field(3.0, gt=0)
+    max_correspondence_m: float = Field(1.0, gt=0)
+    max_iterations: int = Field(50, ge=1)
+    # acceptance
+    min_fitness: float = Field(0.5, ge=0, le=1)
+    max_inlier_rmse_m: float = Field(0.6, gt=0)
+    min_overlap: float = Field(0.35, ge=0, le=1)
+    overlap_cell_m: float = Field(2.0, gt=0)
+    # information = inv(inv(H / sigma^2) + floor): registration Hessian with sigma = inlier RMSE,
+    # plus a floor covariance for what point-to-point ICP cannot see (correlated radar points,
+    # map blur); the floor bounds how confident a loop closure can ever be.
+    min_sigma_m: float = Field(0.1, gt=0)
+    floor_sigma_xy_m: float = Field(0.1, ge=0)
+    floor_sigma_yaw_deg: float = Field(0.5, ge=0)
+
+
+def _as_xy(points, what: str) -> np.ndarray:
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] not in (2, 3):
+        raise DataError(f"loop verification: {what} must be (N, 2) points, got {arr.shape}")
+    arr = arr[:, :2]
+    finite = np.all(np.isfinite(arr), axis=1)
+    return arr[finite]
+
+
+def voxel_downsample_2d(xy: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Mean of the points in each occupied square cell."""
+    if len(xy) == 0:
+        return xy
+    cells = np.floor(xy / voxel_m).astype(np.int64)
+    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    out = np.zeros((len(counts), 2))
+    np.add.at(out, inverse, xy)
+    return out / counts[:, None]
+
+
+def _rot(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s], [s, c]])
+
+
+def _transform(xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    return xy @ pose[:2, :2].T + pose[:2, 3]
+
+
+def _planar(pose: np.ndarray) -> np.ndarray:
+    yaw = math.atan2(pose[1, 0], pose[0, 0])
+    return se2_to_matrix(float(pose[0, 3]), float(pose[1, 3]), yaw)
+
+
+@dataclass(frozen=True)
+class _Hypothesis:
+    pose: np.ndarray  # candidate_from_query initial guess
+    heading_deg: float
+    score: float
+
+
+class LoopVerifier:
+    """Registers a query key frame's local map against a candidate's (see module docstring)."""
+
+    def __init__(self, config: LoopVerifierConfig | None = None):
+        self.config = config or LoopVerifierConfig()
+        self._o3d = None
+        self.log: list[LoopCandidate] = []  # every candidate seen by verify_candidate, in order
+
+    def verify_candidate(
+        self,
+        query: NodeKey,
+        candidate: NodeKey,
+        query_timestamp_us: int,
+        candidate_timestamp_us: int,
+        descriptor_distance: float,
+        query_cloud_xy,
+        candidate_cloud_xy,
+        initial_guess_candidate_from_query: np.ndarray | None = None,
+    ) -> tuple[LoopCandidate, LoopVerification]:
+        """:meth:`verify`, recording the outcome (accepted or not, with the reason) in ``log``."""
+        ver = self.verify(query_cloud_xy, candidate_cloud_xy, initial_guess_candidate_from_query)
+        record = LoopCandidate.from_verification(
+            query, candidate, query_timestamp_us, candidate_timestamp_us, descriptor_distance, ver
+        )
+        self.log.append(record)
+        return record, ver
+
+    # --- public --------------------------------------------------------------------------------
+
+    def verify(
+        self,
+        query_cloud_xy,
+        candidate_cloud_xy,
+        initial_guess_candidate_from_query: np.ndarray | None = None,
+    ) -> LoopVerification:
+        t0 = time.perf_counter()
+        cfg = self.config
+        q = voxel_downsample_2d(_as_xy(query_cloud_xy, "query cloud"), cfg.voxel_size_m)
+        c = voxel_downsample_2d(_as_xy(candidate_cloud_xy, "candidate cloud"), cfg.voxel_size_m)
+        guess = np.eye(4)
+        if initial_guess_candidate_from_query is not None:
+            g = np.asarray(initial_guess_candidate_from_query, dtype=np.float64)
+            if g.shape != (4, 4) or not np.all(np.isfinite(g)):
+                raise DataError(
+                    f"loop verification: initial guess must be a finite 4x4 pose, got {g.shape}"
+                )
+            guess = _planar(g)
+        if len(q) < cfg.min_points or len(c) < cfg.min_points:
+            return self._reject(
+                f"too few points after downsampling (query {len(q)}, candidate {len(c)}, "
+                f"need {cfg.min_points})",
+                guess,
+                t0,
+            )
+        best = None
+        for hyp in self._hypotheses(q, c, guess):
+            pose = self._icp(q, c, hyp.pose)
+            fitness, rmse, _ = self._score(q, c, pose, cfg.max_correspondence_m)
+            key = (fitness, -rmse)
+            if best is None or key > best[0]:
+                best = (key, pose, fitness, rmse, hyp.heading_deg)
+        assert best is not None
+        _, pose, fitness, rmse, heading = best
+        overlap = self._overlap(q, c, pose)
+        info = self._information(q, c, pose, rmse)
+        reasons = []
+        if fitness < cfg.min_fitness:
+            reasons.append(f"fitness {fitness:.2f} < {cfg.min_fitness}")
+        if not rmse <= cfg.max_inlier_rmse_m:
+            reasons.append(f"inlier_rmse {rmse:.2f} m > {cfg.max_inlier_rmse_m}")
+        if overlap < cfg.min_overlap:
+            reasons.append(f"overlap {overlap:.2f} < {cfg.min_overlap}")
+        return LoopVerification(
+            accepted=not reasons,
+            reason="; ".join(reasons) if reasons else "ok",
+            candidate_from_query=pose,
+            fitness=float(fitness),
+            inlier_rmse_m=float(rmse),
+            overlap=float(overlap),
+            information=info,
+            initial_heading_deg=float(heading),
+            runtime_ms=(time.perf_counter() - t0) * 1e3,
+        )
+
+    # --- stages --------------------------------------------------------------------------------
+
+    def _reject(self, reason: str, guess: np.ndarray, t0: float) -> LoopVerification:
+        nan = float("nan")
+        return LoopVerification(
+            accepted=False,
+            reason=reason,
+            candidate_from_query=guess,
+            fitness=0.0,
+            inlier_rmse_m=nan,
+            overlap=0.0,
+            information=np.zeros((3, 3)),
+            runtime_ms=(time.perf_counter() - t0) * 1e3,
+        )
+
+    def _hypotheses(self, q: np.ndarray, c: np.ndarray, guess: np.ndarray) -> list[_Hypothesis]:
+        cfg = self.config
+        steps = max(1, round(360.0 / cfg.heading_step_deg))
+        guess_yaw = math.atan2(guess[1, 0], guess[0, 0])
+        hyps = []
+        grid = _LikelihoodGrid(c, cfg.grid_cell_m) if cfg.correlative_search else None
+        for n in range(steps):
+            dh = n * 360.0 / steps
+            yaw = guess_yaw + math.radians(dh)
+            pose = se2_to_matrix(guess[0, 3], guess[1, 3], yaw)
+            score = 0.0
+            if grid is not None and cfg.search_radius_m > 0:
+                shift, score = grid.best_shift(_transform(q, pose), cfg.search_radius_m)
+                pose[:2, 3] += shift
+            hyps.append(_Hypothesis(pose, dh if dh <= 180 else dh - 360, score))
+        if grid is not None:
+            hyps.sort(key=lambda h: -h.score)
+            hyps = hyps[: cfg.refine_top_k]
+        return hyps
+
+    def _icp(self, q: np.ndarray, c: np.ndarray, init: np.ndarray) -> np.ndarray:
+        cfg = self.config
+        pose = init
+        for max_corr in (cfg.coarse_max_correspondence_m, cfg.max_correspondence_m):
+            if cfg.backend == "open3d":
+                pose = self._icp_open3d(q, c, pose, max_corr)
+            else:
+                pose = self._icp_small_gicp(q, c, pose, max_corr)
+            pose = _planar(pose)
+        return pose
+
+    def _icp_open3d(self, q, c, init, max_corr) -> np.ndarray:
+        if self._o3d is None:
+            import open3d as o3d
+
+            o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+            self._o3d = o3d
+        o3d = self._o3d
+        reg = o3d.pipelines.registration
+
+        def cloud(xy):
+            return o3d.geometry.PointCloud(
+                o3d.utility.Vector3dVector(np.column_stack([xy, np.zeros(len(xy))]))
+            )
+
+        res = reg.registration_icp(
+            cloud(q),
+            cloud(c),
+            max_corr,
+            init,
+            reg.TransformationEstimationPointToPoint(),
+            reg.ICPConvergenceCriteria(
+                relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=self.config.max_iterations
+            ),
+        )
+        return np.asarray(res.transformation, dtype=np.float64)
+
+    def _icp_small_gicp(self, q, c, init, max_corr) -> np.ndarray:
+        import small_gicp
+
+        res = small_gicp.align(
+            np.column_stack([c, np.zeros(len(c))]),
+            np.column_stack([q, np.zeros(len(q))]),
+            init_T_target_source=init,
+            registration_type="ICP",
+            downsampling_resolution=self.config.voxel_size_m,
+            max_correspondence_distance=max_corr,
+            num_threads=1,
+            max_iterations=self.config.max_iterations,
+        )
+        return np.asarray(res.T_target_source, dtype=np.float64)
+
+    def _score(self, q, c, pose, max_corr):
+        from scipy.spatial import cKDTree
+
+        moved = _transform(q, pose)
+        d, idx = cKDTree(c).query(moved, distance_upper_bound=max_corr)
+        ok = np.isfinite(d)
+        fitness = float(ok.mean())
+        rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("inf")
+        return fitness, rmse, (moved[ok], c[idx[ok]])
+
+    def _overlap(self, q, c, pose) -> float:
+        """Shared occupied cells / the smaller map's occupied cells, in the candidate frame."""
+        cell = self.config.overlap_cell_m
+        qc = {tuple(v) for v in np.floor(_transform(q, pose) / cell).astype(np.int64)}
+        cc = {tuple(v) for v in np.floor(c / cell).astype(np.int64)}
+        return len(qc & cc) / max(1, min(len(qc), len(cc)))
+
+    def _information(self, q, c, pose, rmse) -> np.ndarray:
+        """Point-to-point Hessian (left perturbation in the candidate frame), scaled by the inlier
+        RMSE, plus the floor covariance, then moved to gtsam's right perturbation of the
+        ``candidate_from_query`` measurement."""
+        cfg = self.config
+        _, _, (moved, _) = self._score(q, c, pose, cfg.max_correspondence_m)
+        if len(moved) < 3:
+            return np.zeros((3, 3))
+        # d(p')/d(tx, ty, theta) for p' = exp(xi) p: [[1, 0, -y], [0, 1, x]]
+        n = len(moved)
+        h = np.zeros((3, 3))
+        h[0, 0] = h[1, 1] = n
+        h[0, 2] = h[2, 0] = -moved[:, 1].sum()
+        h[1, 2] = h[2, 1] = moved[:, 0].sum()
+        h[2, 2] = float(np.sum(moved**2))
+        sigma = max(float(rmse), cfg.min_sigma_m)
+        try:
+            cov_left = np.linalg.inv(h / sigma**2)
+        except np.linalg.LinAlgError:
+            return np.zeros((3, 3))
+        # xi_left = Ad(T) xi_right  =>  cov_right = Ad(T)^-1 cov_left Ad(T)^-T
+        x, y = pose[0, 3], pose[1, 3]
+        cs, sn = pose[0, 0], pose[1, 0]
+        ad = np.array([[cs, -sn, y], [sn, cs, -x], [0.0, 0.0, 1.0]])
+        ad_inv = np.linalg.inv(ad)
+        cov = ad_inv @ cov_left @ ad_inv.T
+        yaw_floor = math.radians(cfg.floor_sigma_yaw_deg)
+        floor = np.diag([cfg.floor_sigma_xy_m**2, cfg.floor_sigma_xy_m**2, yaw_floor**2])
+        info = np.linalg.inv(cov + floor)
+        return 0.5 * (info + info.T)
+
+
+class _LikelihoodGrid:
+    """The candidate map as a blurred occupancy grid, for FFT translation search."""
+
+    def __init__(self, c: np.ndarray, cell_m: float):
+        self.cell = cell_m
+        self.origin = c.min(axis=0)
+        idx = np.floor((c - self.origin) / cell_m).astype(np.int64)
+        shape = idx.max(axis=0) + 1
+        occ = np.zeros(shape)
+        occ[idx[:, 0], idx[:, 1]] = 1.0
+        # 3x3 blur: tolerate sub-cell misalignment without rewarding vague matches too much
+        pad = np.pad(occ, 1)
+        blur = sum(
+            pad[1 + dx : 1 + dx + shape[0], 1 + dy : 1 + dy + shape[1]] * w
+            for dx, dy, w in [(0, 0, 1.0)]
+            + [(a, b, 0.5) for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+        )
+        self.grid = blur
+
+    def best_shift(self, q: np.ndarray, radius_m: float) -> tuple[np.ndarray, float]:
+        """Translation (2,) of the query points (in the candidate frame) maximising the summed
+        grid likelihood within +-radius_m, and that score normalised by the query size."""
+        r = math.ceil(radius_m / self.cell)
+        qi = np.floor((q - self.origin) / self.cell).astype(np.int64)
+        # query occupancy on a grid anchored at (min - r) so shifts in [-r, r] stay non-negative
+        base = qi.min(axis=0) - r
+        qi = qi - base
+        qshape = qi.max(axis=0) + 1 + r
+        qocc = np.zeros(qshape)
+        qocc[qi[:, 0], qi[:, 1]] = 1.0
+        # score(s) = sum_p qocc(p) * grid(p + base + s)
+        full = tuple(int(v) for v in np.array(self.grid.shape) + qshape)
+        f = np.fft.rfft2(self.grid, full) * np.conj(np.fft.rfft2(qocc, full))
+        corr = np.fft.irfft2(f, full)
+        # corr[k] = sum_p grid(p + k) qocc(p) with k = base + s (indices mod full)
+        best_score, best_s = -1.0, np.zeros(2)
+        sx = np.arange(-r, r + 1)
+        kx = (base[0] + sx) % full[0]
+        ky = (base[1] + sx) % full[1]
+        window = corr[np.ix_(kx, ky)]
+        ij = np.unravel_index(int(np.argmax(window)), window.shape)
+        best_score = float(window[ij])
+        best_s = np.array([sx[ij[0]], sx[ij[1]]], dtype=np.float64) * self.cell
+        return best_s, best_score / max(1.0, float(qocc.sum()))

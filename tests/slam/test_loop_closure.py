@@ -1,0 +1,114 @@
+import numpy as np
+import pytest
+
+from radarslam.errors import DataError
+from radarslam.geometry import invert, matrix_to_se2, se2_to_matrix
+from radarslam.slam.loop_closure import LoopVerifier, LoopVerifierConfig
+from radarslam.slam.records import NodeKey
+from radarslam.slam.synthetic_graph import observe_place, random_place
+
+
+def _revisit(seed, q_from_place):
+    place = random_place(seed, points_per_m=3)
+    query = observe_place(place, q_from_place, seed=1000 + seed, dropout=0.3, noise_m=0.15)
+    cand = observe_place(place, np.eye(4), seed=2000 + seed, dropout=0.3, noise_m=0.15)
+    return query, cand, invert(q_from_place)  # candidate_from_query (candidate frame = place)
+
+
+def _pose_error(est, true):
+    err = matrix_to_se2(invert(true) @ est)
+    return float(np.hypot(err[0], err[1])), float(np.degrees(abs(err[2])))
+
+
+@pytest.fixture(scope="module")
+def verifier():
+    return LoopVerifier()
+
+
+@pytest.mark.parametrize(
+    "q_from_place",
+    [
+        se2_to_matrix(4.0, -3.0, np.deg2rad(12.0)),  # same direction, shifted
+        se2_to_matrix(-6.0, 5.0, np.deg2rad(183.0)),  # revisited in the opposite direction
+        se2_to_matrix(7.0, 2.0, np.deg2rad(-97.0)),  # crossing at a right angle
+    ],
+)
+def test_true_revisit_is_accepted_with_the_right_pose(verifier, q_from_place):
+    query, cand, true = _revisit(3, q_from_place)
+    v = verifier.verify(query, cand, None)
+    assert v.accepted, v.reason
+    assert v.reason == "ok"
+    t_err, r_err = _pose_error(v.candidate_from_query, true)
+    assert t_err < 0.15 and r_err < 0.5
+    assert v.fitness > 0.8 and v.inlier_rmse_m < 0.4 and v.overlap > 0.6
+    info = v.information
+    assert np.allclose(info, info.T) and np.all(np.linalg.eigvalsh(info) > 0)
+    cov = np.linalg.inv(info)
+    # floor keeps the loop from claiming better than 0.1 m / 0.5 deg
+    assert np.sqrt(cov[0, 0]) >= 0.1 and np.sqrt(cov[2, 2]) >= np.deg2rad(0.5)
+
+
+def test_wrong_place_is_rejected_with_reason(verifier):
+    query, _, _ = _revisit(3, se2_to_matrix(4.0, -3.0, 0.2))
+    other = observe_place(random_place(77, points_per_m=3), np.eye(4), seed=5)
+    v = verifier.verify(query, other, None)
+    assert not v.accepted
+    assert "fitness" in v.reason and v.fitness < 0.5
+
+
+def test_rejects_a_series_of_wrong_places_and_accepts_revisits(verifier):
+    accepted_wrong = 0
+    accepted_true = 0
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        q_from_place = se2_to_matrix(*rng.uniform(-8, 8, 2), rng.uniform(-np.pi, np.pi))
+        query, cand, true = _revisit(10 + seed, q_from_place)
+        v = verifier.verify(query, cand)
+        accepted_true += v.accepted and _pose_error(v.candidate_from_query, true)[0] < 0.3
+        wrong = observe_place(random_place(900 + seed, points_per_m=3), np.eye(4), seed=seed)
+        accepted_wrong += verifier.verify(query, wrong).accepted
+    assert accepted_true == 8 and accepted_wrong == 0
+
+
+def test_initial_guess_suffices_without_search():
+    q_from_place = se2_to_matrix(20.0, -15.0, np.deg2rad(140.0))  # beyond the search radius
+    query, cand, true = _revisit(4, q_from_place)
+    guess = true @ se2_to_matrix(0.8, -0.5, np.deg2rad(4.0))
+    v = LoopVerifier(LoopVerifierConfig(correlative_search=False, heading_step_deg=360))
+    res = v.verify(query, cand, guess)
+    assert res.accepted and _pose_error(res.candidate_from_query, true)[0] < 0.15
+
+
+def test_small_gicp_backend_agrees():
+    query, cand, true = _revisit(5, se2_to_matrix(-2.0, 3.0, np.deg2rad(178.0)))
+    v = LoopVerifier(LoopVerifierConfig(backend="small_gicp")).verify(query, cand)
+    assert v.accepted and _pose_error(v.candidate_from_query, true)[0] < 0.15
+
+
+def test_too_few_points_and_bad_input(verifier):
+    v = verifier.verify(np.zeros((5, 2)), np.random.default_rng(0).normal(size=(500, 2)) * 10)
+    assert not v.accepted and "too few points" in v.reason
+    with pytest.raises(DataError, match="query cloud must be"):
+        verifier.verify(np.zeros(10), np.zeros((10, 2)))
+    with pytest.raises(DataError, match="initial guess"):
+        verifier.verify(np.zeros((50, 2)), np.zeros((50, 2)), np.eye(3))
+
+
+def test_verify_candidate_logs_every_outcome():
+    v = LoopVerifier()
+    query, cand, _ = _revisit(6, se2_to_matrix(1.0, 1.0, 0.1))
+    rec, _ver = v.verify_candidate(
+        NodeKey("a", 40), NodeKey("a", 2), 4_000_000, 200_000, 0.3, query, cand
+    )
+    v.verify_candidate(
+        NodeKey("a", 41),
+        NodeKey("b", 9),
+        4_100_000,
+        90_000,
+        0.7,
+        query,
+        observe_place(random_place(99), np.eye(4), seed=1),
+    )
+    assert [r.accepted for r in v.log] == [True, False]
+    assert rec.reason == "ok" and rec.candidate == NodeKey("a", 2)
+    assert v.log[1].reason != "ok"

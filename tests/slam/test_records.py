@@ -1,0 +1,56 @@
+import numpy as np
+import pytest
+
+from radarslam.errors import DataError
+from radarslam.geometry import se2_to_matrix
+from radarslam.slam.records import LoopCandidate, NodeKey, read_loops_csv, write_loops_csv
+
+
+def test_loops_csv_round_trip(tmp_path):
+    loops = [
+        LoopCandidate(
+            NodeKey("scene-0001", 40),
+            NodeKey("scene-0001", 3),
+            4_000_000,
+            300_000,
+            0.25,
+            True,
+            "ok",
+            se2_to_matrix(1.5, -0.5, 3.0),
+            0.9,
+            0.3,
+            0.7,
+        ),
+        LoopCandidate(
+            NodeKey("scene-0002", 1),
+            NodeKey("scene-0001", 9),
+            9_000_000,
+            900_000,
+            0.61,
+            False,
+            "fitness 0.20 < 0.5; overlap 0.10 < 0.35",
+        ),
+    ]
+    path = tmp_path / "loops.csv"
+    write_loops_csv(path, loops)
+    back = read_loops_csv(path)
+    assert [(lc.query, lc.candidate, lc.accepted, lc.reason) for lc in back] == [
+        (lc.query, lc.candidate, lc.accepted, lc.reason) for lc in loops
+    ]
+    np.testing.assert_allclose(
+        back[0].candidate_from_query, loops[0].candidate_from_query, atol=1e-12
+    )
+    assert back[0].fitness == 0.9 and np.isnan(back[1].fitness)
+
+
+def test_loops_csv_errors(tmp_path):
+    path = tmp_path / "loops.csv"
+    path.write_text("a,b\n")
+    with pytest.raises(DataError, match=r"loops\.csv:1: header"):
+        read_loops_csv(path)
+    write_loops_csv(path, [])
+    path.write_text(path.read_text() + "s,1,2,s,0,1,0.1,yes,ok,1,1,1,0,0,0\n")
+    with pytest.raises(DataError, match=r"loops\.csv:2: malformed"):
+        read_loops_csv(path)
+    with pytest.raises(DataError, match="does not exist"):
+        read_loops_csv(tmp_path / "none.csv")
