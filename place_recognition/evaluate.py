@@ -279,3 +279,46 @@ def load_results(path: str | Path) -> list[dict]:
         return json.loads(path.read_text())["rows"]
     except (OSError, ValueError, KeyError) as exc:
         raise DataError(f"{path}: not a results file ({exc})") from None
+
+
+# ---- method factories (CLI, ablation, bench) ------------------------------------------------
+BASELINES = ("scancontext", "m2dp")
+
+
+def baseline_ranking_fn(
+    data: PreparedData,
+    name: str,
+    cfg: EvalConfig,
+    scancontext: ScanContextConfig | None = None,
+    m2dp_cfg: M2DPConfig | None = None,
+) -> tuple[str, Callable[[np.ndarray, int], Ranking]]:
+    """("ScanContext" | "M2DP", ranking function) on the prepared (DPR'd, cropped) points."""
+    from radarslam.errors import ConfigError
+
+    if not data.points_xy:
+        raise DataError(f"{data.root}: the prepared data holds no points for the baselines")
+    if name == "scancontext":
+        sc = scancontext or ScanContextConfig()
+        return "ScanContext", lambda q, k: scancontext_ranking(data, q, k, sc)
+    if name == "m2dp":
+        mc = m2dp_cfg or M2DPConfig()
+        return "M2DP", descriptor_ranking_fn(data, lambda f: m2dp_descriptors(data, f, mc), cfg)
+    raise ConfigError(f"unknown baseline {name!r} (choose from {', '.join(BASELINES)})")
+
+
+def model_describe_fn(model, data: PreparedData, batch_size: int = 32, device: str = "cpu"):
+    """``frames -> (M, D)`` descriptors of the sequences ending at ``frames``."""
+    from place_recognition.train import compute_descriptors
+
+    return lambda frames: compute_descriptors(model, data, frames, batch_size, device)
+
+
+def checkpoint_ranking_fn(
+    data: PreparedData, checkpoint: str | Path, cfg: EvalConfig, device: str = "cpu"
+) -> tuple[str, Callable[[np.ndarray, int], Ranking]]:
+    from place_recognition.checkpoint import load_model
+
+    model, model_cfg, _ = load_model(checkpoint, device=device)
+    name = str(getattr(model_cfg, "preset", "") or Path(checkpoint).stem)
+    describe = model_describe_fn(model, data, cfg.batch_size, device)
+    return name, descriptor_ranking_fn(data, describe, cfg)

@@ -307,3 +307,16 @@ class PlaceRecognizer:
             key = tuple(key) if isinstance(key, list) else key
             rec.add_descriptor(desc[i], rcs[offsets[i] : offsets[i + 1]], key)
         return rec
+
+
+def iter_scene_sequences(recognizer: PlaceRecognizer, reader, scene):
+    """(sample_token, clouds oldest first) for every key frame of a scene that has a
+    reference-channel key frame; each sequence holds up to ``recognizer.seq_len`` clouds."""
+    ref = recognizer.config.accumulation.ref_channel
+    window: list[AccumulatedCloud] = []
+    for frame in reader.iter_frames(scene, key_frames_only=True, ref_channel=ref):
+        if ref not in frame.sweeps:
+            continue
+        window = [*window, recognizer.cloud_from_reader(reader, frame.sample_token)]
+        window = window[-recognizer.seq_len :]
+        yield frame.sample_token, list(window)

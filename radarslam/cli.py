@@ -25,6 +25,9 @@ app = typer.Typer(
 from radarslam.nuscenes import commands as _nuscenes_commands  # noqa: E402
 
 app.command("stats")(_nuscenes_commands.stats)
+from place_recognition.commands import pr_app  # noqa: E402
+
+app.add_typer(pr_app, name="pr")
 # END COMMANDS
 
 

@@ -1,0 +1,165 @@
+"""``radarslam pr ...``: prepare, train, eval, build-db, query (light imports at module level)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+pr_app = typer.Typer(
+    help="AutoPlace radar place recognition: data, training, evaluation, loop-detector database.",
+    no_args_is_help=True,
+)
+
+_SET = typer.Option(None, "--set", help="config override key.sub=value (repeatable)")
+
+
+def _echo_table(rows: list[dict]) -> None:
+    from place_recognition.evaluate import markdown_table
+
+    typer.echo(markdown_table(rows))
+
+
+@pr_app.command("prepare")
+def prepare_cmd(
+    config: Path = typer.Argument(..., help="prepare YAML (configs/place_recognition/data_*.yaml)"),
+    out: Path = typer.Option(Path("outputs/place_recognition"), help="cache root"),
+    dataroot: Path | None = typer.Option(None, help="nuScenes-layout dataroot (overrides config)"),
+    overwrite: bool = typer.Option(False, help="recompute every stage"),
+    overrides: list[str] | None = _SET,
+) -> None:
+    """Index key frames, accumulate + DPR + rasterise, split; cached in OUT/<name>/."""
+    from place_recognition.config import load_prepare_config
+    from place_recognition.dataset import split_summary
+    from place_recognition.prepare import prepare
+
+    sets = list(overrides or [])
+    if dataroot is not None:
+        sets.append(f"source.dataroot={dataroot}")
+    cfg = load_prepare_config(config, sets)
+    root = prepare(cfg, out, overwrite=overwrite)
+    typer.echo(f"prepared {root}")
+    _echo_table([split_summary(root)])
+
+
+@pr_app.command("train")
+def train_cmd(
+    prepared: Path = typer.Argument(..., help="prepared cache directory"),
+    model: str = typer.Option("compact_se_te", help="model preset name or YAML"),
+    train: str = typer.Option("compact_cpu", help="train preset name or YAML"),
+    out: Path = typer.Option(Path("outputs/place_recognition/train"), help="output directory"),
+    set_model: list[str] | None = typer.Option(None, "--set-model", help="model override"),
+    set_train: list[str] | None = typer.Option(None, "--set-train", help="train override"),
+) -> None:
+    """Train an AutoPlace network on a prepared cache (place_recognition.train)."""
+    from place_recognition.dataset import load_prepared
+    from place_recognition.models import load_model_config
+    from place_recognition.train import load_train_config
+    from place_recognition.train import train as run_train
+
+    data = load_prepared(prepared)
+    model_cfg = load_model_config(model, set_model)
+    train_cfg = load_train_config(train, set_train)
+    result = run_train(train_cfg, model_cfg, data, out)
+    typer.echo(f"best checkpoint: {result.best_checkpoint}")
+
+
+@pr_app.command("eval")
+def eval_cmd(
+    prepared: Path = typer.Argument(..., help="prepared cache directory"),
+    checkpoint: Path | None = typer.Option(None, help="model checkpoint (.pt)"),
+    baseline: str | None = typer.Option(None, help="handcrafted baseline: scancontext | m2dp"),
+    split: str = typer.Option("test", help="split to evaluate (val or test)"),
+    rerank: bool = typer.Option(True, help="also evaluate with RCSHR re-ranking"),
+    tune: bool = typer.Option(False, help="grid-search RCSHR parameters on the val split first"),
+    config: Path | None = typer.Option(None, help="eval YAML (configs/place_recognition/eval_*)"),
+    out: Path = typer.Option(Path("outputs/place_recognition/eval"), help="output directory"),
+    overrides: list[str] | None = _SET,
+) -> None:
+    """Recall@N, max F1, AP and PR curve on a split; Markdown + JSON + PNG in OUT."""
+    from place_recognition.config import load_eval_config
+    from place_recognition.dataset import load_prepared
+    from place_recognition.evaluate import (
+        baseline_ranking_fn,
+        checkpoint_ranking_fn,
+        evaluate_method,
+        write_results,
+    )
+    from radarslam.errors import ConfigError
+
+    if (checkpoint is None) == (baseline is None):
+        raise ConfigError("give exactly one of --checkpoint or --baseline")
+    cfg = load_eval_config(config, overrides)
+    data = load_prepared(prepared)
+    if checkpoint is not None:
+        name, fn = checkpoint_ranking_fn(data, checkpoint, cfg)
+    else:
+        name, fn = baseline_ranking_fn(data, baseline, cfg)
+    results = evaluate_method(
+        data, name, fn, cfg, split, rerank_cfg=cfg.rerank if rerank else None, tune_on_val=tune
+    )
+    paths = write_results(results, out, stem=f"{name}_{split}".replace("+", "_"))
+    _echo_table([r.row() for r in results])
+    typer.echo(f"wrote {paths['md']}")
+
+
+@pr_app.command("build-db")
+def build_db_cmd(
+    dataroot: Path = typer.Option(..., help="nuScenes-layout dataroot"),
+    out: Path = typer.Option(..., help="database file (.npz)"),
+    version: str = typer.Option("v1.0-trainval", help="nuScenes version"),
+    scene: list[str] | None = typer.Option(None, help="scene name (repeatable)"),
+    location: str | None = typer.Option(None, help="every scene of this location"),
+    checkpoint: Path | None = typer.Option(None, help="checkpoint (default: shipped compact)"),
+    config: Path | None = typer.Option(None, help="recognizer YAML"),
+    overrides: list[str] | None = _SET,
+) -> None:
+    """Describe every key frame of the chosen scenes and save a loop-detector database."""
+    from tqdm import tqdm
+
+    from place_recognition.config import PlaceRecognizerConfig
+    from place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
+    from radarslam.config import load_config
+    from radarslam.errors import ConfigError
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    if not scene and location is None:
+        raise ConfigError("give --scene (repeatable) or --location")
+    cfg = load_config(PlaceRecognizerConfig, config, overrides)
+    rec = PlaceRecognizer(checkpoint=checkpoint, config=cfg)
+    reader = NuScenesRadar(dataroot, version)
+    scenes = list(scene or []) or [s.name for s in reader.scenes_for_location(location)]
+    for name in tqdm(scenes, desc="build-db", unit="scene"):
+        for token, clouds in iter_scene_sequences(rec, reader, name):
+            rec.add(clouds, key=token)
+    rec.save(out)
+    typer.echo(f"{len(rec)} places -> {out}")
+
+
+@pr_app.command("query")
+def query_cmd(
+    database: Path = typer.Argument(..., help="database from build-db"),
+    dataroot: Path = typer.Option(..., help="nuScenes-layout dataroot"),
+    scene: str = typer.Option(..., help="scene whose key frames are queried"),
+    version: str = typer.Option("v1.0-trainval", help="nuScenes version"),
+    sample_token: str | None = typer.Option(None, help="only this key frame"),
+    k: int = typer.Option(5, help="candidates per query"),
+    checkpoint: Path | None = typer.Option(None, help="checkpoint (default: the database's)"),
+) -> None:
+    """Top-k places for key frames of a scene (the database is not modified)."""
+    from place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
+    from radarslam.errors import DataError
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    rec = PlaceRecognizer.load(database, checkpoint=checkpoint)
+    reader = NuScenesRadar(dataroot, version)
+    found = False
+    for token, clouds in iter_scene_sequences(rec, reader, scene):
+        if sample_token is not None and token != sample_token:
+            continue
+        found = True
+        cands = rec.query(clouds, k=k)
+        text = ", ".join(f"{c.key} (d={c.descriptor_distance:.3f}, s={c.score:.3f})" for c in cands)
+        typer.echo(f"{token}: {text}")
+    if sample_token is not None and not found:
+        raise DataError(f"sample {sample_token!r} is not a key frame of scene {scene!r}")
