@@ -1,0 +1,60 @@
+"""CLI command of the odometry stage (light at import time: the pipeline is imported on call)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "odometry" / "default.yaml"
+
+
+def odometry(
+    dataroot: Annotated[Path, typer.Option(help="nuScenes dataroot (holds <version>/*.json).")],
+    out: Annotated[Path, typer.Option(help="Output folder (created).")],
+    version: Annotated[str, typer.Option(help="v1.0-mini, v1.0-trainval or v1.0-test.")] = (
+        "v1.0-mini"
+    ),
+    scenes: Annotated[
+        str | None, typer.Option(help="Comma-separated scene names (default: all).")
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="Odometry YAML (default: configs/odometry/default.yaml).")
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="Config override key.sub=value (repeatable)."),
+    ] = None,
+    method: Annotated[
+        str, typer.Option(help="ours, doppler (dead reckoning) or kiss-icp (plain pipeline).")
+    ] = "ours",
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Radar odometry over scenes: poses in TUM and KITTI formats, ground truth alongside."""
+    from radarslam.config import load_config
+    from radarslam.errors import ConfigError
+    from radarslam.nuscenes.reader import NuScenesRadar
+    from radarslam.odometry.baselines import METHODS
+    from radarslam.odometry.config import OdometryConfig
+    from radarslam.odometry.run import run_odometry, write_outputs
+
+    if method not in METHODS:
+        raise ConfigError(f"--method {method!r}: choose one of {', '.join(METHODS)}")
+    path = config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
+    cfg = load_config(OdometryConfig, path, set_)
+    reader = NuScenesRadar(dataroot, version)
+    names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
+    infos = [reader.scene(n) for n in names] if names else reader.scenes()
+    traj = run_odometry(reader, infos, cfg, method=method, progress=progress)
+    summary = write_outputs(traj, out, cfg)
+    tot = summary["total"]
+
+    def fmt(v, spec):
+        return "n/a" if v is None else format(v, spec)
+
+    typer.echo(
+        f"{method}: {tot['frames']} frames, {tot['path_length_m']:.0f} m, "
+        f"ATE {fmt(tot['ate_rmse_m'], '.2f')} m, drift {fmt(tot['drift_pct'], '.2f')} %, "
+        f"{tot['mean_ms_per_frame']:.1f} ms/frame -> {out}"
+    )
