@@ -28,6 +28,9 @@ app.command("stats")(_nuscenes_commands.stats)
 from place_recognition.commands import pr_app  # noqa: E402
 
 app.add_typer(pr_app, name="pr")
+from radarslam.odometry import commands as _odometry_commands  # noqa: E402
+
+app.command("odometry")(_odometry_commands.odometry)
 # END COMMANDS
 
 
