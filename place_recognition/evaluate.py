@@ -295,15 +295,15 @@ def baseline_ranking_fn(
     """("ScanContext" | "M2DP", ranking function) on the prepared (DPR'd, cropped) points."""
     from radarslam.errors import ConfigError
 
+    if name not in BASELINES:
+        raise ConfigError(f"unknown baseline {name!r} (choose from {', '.join(BASELINES)})")
     if not data.points_xy:
         raise DataError(f"{data.root}: the prepared data holds no points for the baselines")
     if name == "scancontext":
         sc = scancontext or ScanContextConfig()
         return "ScanContext", lambda q, k: scancontext_ranking(data, q, k, sc)
-    if name == "m2dp":
-        mc = m2dp_cfg or M2DPConfig()
-        return "M2DP", descriptor_ranking_fn(data, lambda f: m2dp_descriptors(data, f, mc), cfg)
-    raise ConfigError(f"unknown baseline {name!r} (choose from {', '.join(BASELINES)})")
+    mc = m2dp_cfg or M2DPConfig()
+    return "M2DP", descriptor_ranking_fn(data, lambda f: m2dp_descriptors(data, f, mc), cfg)
 
 
 def model_describe_fn(model, data: PreparedData, batch_size: int = 32, device: str = "cpu"):

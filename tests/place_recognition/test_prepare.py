@@ -1,0 +1,88 @@
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from place_recognition.config import PrepareConfig
+from place_recognition.dataset import load_prepared
+from place_recognition.image import rasterise
+from place_recognition.prepare import prepare
+from radarslam.errors import ConfigError, DataError
+
+
+def test_prepared_contents(mini_prepared):
+    data = load_prepared(mini_prepared)
+    n = len(data)
+    assert n == 16 and data.images.shape == (n, 200, 200) and data.images.dtype == np.uint8
+    assert set(np.unique(data.images)) <= {0, 1}
+    # resolved config written next to the artefacts
+    cfg = PrepareConfig.model_validate(yaml.safe_load((mini_prepared / "config.yaml").read_text()))
+    assert cfg.name == "mini" and cfg.image.size_px == 200 and cfg.accumulation.nsweeps == 7
+    # scenes in time order, frames contiguous; sequences stay inside a scene, oldest first
+    assert list(dict.fromkeys(data.scene_names)) == ["scene-0001", "scene-0002", "scene-0004"]
+    assert np.all(np.diff(data.timestamps_us) > 0)
+    seq = data.sequences
+    assert seq.shape == (n, 2) and np.all(seq[:, 1] == np.arange(n))
+    assert np.all(data.scene_names[seq[:, 0]] == data.scene_names)
+    # the image is the rasterised stored points (stored at 1 cm: a point within 5 mm of a pixel
+    # border may land in the neighbour pixel); RCS in [0, 1] per frame
+    for i in (0, 7, 15):
+        again = rasterise(data.points_xy[i], cfg.image)[0]
+        assert np.sum(again != data.images[i]) <= 0.02 * data.images[i].sum()
+        assert data.rcs[i].min() == 0.0 and data.rcs[i].max() == 1.0
+        assert len(data.rcs[i]) == len(data.points_xy[i]) > 100
+    # split: the later day is held out, every query has a DB frame within 9 m
+    db = data.splits["database"]
+    held = np.concatenate([data.splits["val"], data.splits["test"]])
+    assert len(db) > 0 and len(held) > 0
+    assert set(data.scene_names[held]) == {"scene-0004"}
+    for q in held:
+        assert len(data.positives(q)) > 0
+    counts = json.loads((mini_prepared / "split.json").read_text())
+    assert counts["database"] == len(db)
+    stats = json.loads((mini_prepared / "dpr.json").read_text())
+    assert stats["sweeps"] > 400 and 0 < stats["removed_fraction"] < 0.2
+    # compact: bit-packed images
+    assert (mini_prepared / "images.npz").stat().st_size < 16 * 200 * 200 / 8 + 20_000
+
+
+def test_cache_skip_and_overwrite(mini_dataroot, mini_config, tmp_path):
+    cfg = mini_config(mini_dataroot)
+    stages = []
+    root = prepare(cfg, tmp_path, progress=False, on_stage=stages.append)
+    assert stages == ["frames", "clouds", "split"]
+    mtime = (root / "images.npz").stat().st_mtime_ns
+    stages.clear()
+    prepare(cfg, tmp_path, progress=False, on_stage=stages.append)
+    assert stages == [] and (root / "images.npz").stat().st_mtime_ns == mtime
+    changed = cfg.model_copy(update={"split": cfg.split.model_copy(update={"seed": 7})})
+    with pytest.raises(ConfigError, match=r"split\.npz"):
+        prepare(changed, tmp_path, progress=False)
+    stages.clear()
+    prepare(changed, tmp_path, progress=False, overwrite=True, on_stage=stages.append)
+    assert stages == ["frames", "clouds", "split"]
+    assert yaml.safe_load((root / "config.yaml").read_text())["split"]["seed"] == 7
+
+
+def test_dpr_off_keeps_more_points(mini_dataroot, mini_config, mini_prepared, tmp_path):
+    cfg = mini_config(mini_dataroot, name="mini_nodpr", dpr={"enabled": False})
+    no_dpr = load_prepared(prepare(cfg, tmp_path, progress=False))
+    with_dpr = load_prepared(mini_prepared)
+    n_no = sum(len(r) for r in no_dpr.rcs)
+    n_with = sum(len(r) for r in with_dpr.rcs)
+    assert n_with < n_no
+    # the split depends on poses only
+    for k in ("database", "train", "val", "test"):
+        np.testing.assert_array_equal(no_dpr.splits[k], with_dpr.splits[k])
+
+
+def test_prepare_errors(tmp_path, mini_dataroot, mini_config):
+    with pytest.raises(ConfigError, match="dataroot"):
+        prepare(PrepareConfig(source={"dataroot": None}), tmp_path, progress=False)
+    bad = mini_config(mini_dataroot, source={"dataroot": str(mini_dataroot),
+                                                      "versions": ["v1.0-trainval"]})  # fmt: skip
+    with pytest.raises(DataError, match=r"v1\.0-trainval"):
+        prepare(bad, tmp_path, progress=False)
+    with pytest.raises(DataError, match="does not exist"):
+        load_prepared(tmp_path / "nope")
