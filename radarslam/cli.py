@@ -31,6 +31,9 @@ app.add_typer(pr_app, name="pr")
 from radarslam.odometry import commands as _odometry_commands  # noqa: E402
 
 app.command("odometry")(_odometry_commands.odometry)
+from radarslam.eval import commands as _eval_commands  # noqa: E402
+
+app.command("eval")(_eval_commands.eval_command)
 # END COMMANDS
 
 

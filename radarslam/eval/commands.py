@@ -1,0 +1,93 @@
+"""CLI command ``radarslam eval`` (light at import time: numpy work happens on call)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def _fmt(v, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return "-" if v != v else f"{v:.{digits}f}"
+    return str(v)
+
+
+def eval_command(
+    results_dir: Annotated[Path, typer.Argument(help="Results folder (see docs/outputs.md).")],
+    config: Annotated[
+        Path | None, typer.Option(help="Evaluation YAML (default: configs/eval/default.yaml).")
+    ] = None,
+    override: Annotated[
+        list[str] | None, typer.Option("--set", help="Config override key.sub=value (repeatable).")
+    ] = None,
+    plots: Annotated[bool, typer.Option(help="Write PNG plots under RESULTS_DIR/plots.")] = True,
+) -> None:
+    """ATE / RPE / drift of odometry and SLAM side by side, loop precision/recall; writes
+    RESULTS_DIR/metrics.json."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from radarslam.config import CONFIG_DIR, load_config
+    from radarslam.eval.evaluate import EvalConfig, evaluate_results
+
+    path = config
+    if path is None and (CONFIG_DIR / "eval" / "default.yaml").is_file():
+        path = CONFIG_DIR / "eval" / "default.yaml"
+    cfg = load_config(EvalConfig, path, list(override or []))
+    cfg.plots = plots
+    report = evaluate_results(results_dir, cfg)
+
+    console = Console()
+    groups = [
+        (
+            "trajectory error",
+            [
+                ("poses", "num_poses", 0),
+                ("path m", "path_length_m", 1),
+                ("ATE m SE2", "ate_rmse_m", 3),
+                ("ATE m first", "ate_first_rmse_m", 3),
+                ("drift %", "drift_pct", 2),
+            ],
+        ),
+        (
+            "relative pose error (RMSE)",
+            [
+                (f"RPE {cfg.rpe_time_s:g}s m", "rpe_time_trans_rmse_m", 3),
+                (f"RPE {cfg.rpe_time_s:g}s deg", "rpe_time_rot_rmse_deg", 3),
+                (f"RPE {cfg.rpe_distance_m:g}m m", "rpe_dist_trans_rmse_m", 3),
+                (f"RPE {cfg.rpe_distance_m:g}m deg", "rpe_dist_rot_rmse_deg", 3),
+            ],
+        ),
+    ]
+    for title, cols in groups:
+        table = Table(title=f"{title}: {results_dir.name}")
+        table.add_column("session")
+        table.add_column("run")
+        for name, _, _ in cols:
+            table.add_column(name, justify="right")
+        for s in report.sessions:
+            for kind, m in report.per_session[s].items():
+                d = m.as_dict()
+                table.add_row(s, kind, *[_fmt(d[key], digits) for _, key, digits in cols])
+        console.print(table)
+    if report.run:
+        run = Table(title="whole run (per-session errors pooled; joint = one alignment)")
+        for name in ("run", "sessions", "poses", "ATE m (SE2)", "ATE m (first)", "ATE m (joint)"):
+            run.add_column(name, justify="left" if name == "run" else "right")
+        for kind, d in report.run.items():
+            run.add_row(kind, str(d["num_sessions"]), str(d["num_poses"]), _fmt(d["ate_rmse_m"]),
+                        _fmt(d["ate_first_rmse_m"]), _fmt(d["ate_joint_rmse_m"]))  # fmt: skip
+        console.print(run)
+    if report.loops is not None:
+        lm = report.loops.as_dict()
+        console.print(
+            f"loops: {lm['num_candidates']} candidates, {lm['num_accepted']} accepted, "
+            f"{lm['num_correct']} correct; precision {_fmt(lm['precision'])}, recall "
+            f"{_fmt(lm['recall'])} ({lm['num_recalled_queries']}/{lm['num_revisit_queries']} "
+            "GT revisit queries)"
+        )
+    console.print(f"wrote {Path(results_dir) / 'metrics.json'}")

@@ -1,0 +1,305 @@
+"""``radarslam eval RESULTS_DIR``: metrics of a results folder (layout: docs/outputs.md).
+
+For every session and for the whole run, odometry-only and SLAM side by side:
+ATE (SE(2)-aligned RMSE, and unaligned from the first pose), RPE per ``rpe_time_s`` seconds and per
+``rpe_distance_m`` metres, KITTI-style drift, and loop-closure precision / recall from
+``loops.csv``. Run-level numbers pool the per-session errors (each session aligned on its own) and,
+for ATE, also align all sessions jointly with one transform (``ate_joint``), which is what shows
+whether a multi-session map is consistent.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field
+
+from radarslam.config import StrictModel
+from radarslam.errors import DataError
+from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth, evaluate_loops
+from radarslam.eval.metrics import ate, drift, path_lengths_m, rpe, to_xy_yaw
+from radarslam.io.atomic import write_json_atomic
+from radarslam.io.trajectory import read_tum
+from radarslam.slam.records import read_loops_csv
+
+KINDS = ("odometry", "slam")
+_PREFIX = {"slam": "poses_", "odometry": "odometry_", "gt": "gt_"}
+
+
+class EvalConfig(StrictModel):
+    rpe_time_s: float = Field(1.0, gt=0)
+    rpe_distance_m: float = Field(10.0, gt=0)
+    drift_segment_lengths_m: tuple[float, ...] = (50.0, 100.0)
+    max_time_diff_us: int = Field(10_000, ge=0)  # association of estimate and ground truth
+    loops: LoopEvalConfig = LoopEvalConfig()
+    plots: bool = True
+
+
+@dataclass
+class TrajectoryMetrics:
+    num_poses: int
+    path_length_m: float
+    ate_rmse_m: float  # SE(2)-aligned
+    ate_max_m: float
+    ate_first_rmse_m: float  # unaligned: first poses made to coincide
+    ate_final_first_m: float  # last-pose error with first-pose alignment (open-loop drift)
+    rpe_time_trans_rmse_m: float
+    rpe_time_rot_rmse_deg: float
+    rpe_dist_trans_rmse_m: float
+    rpe_dist_rot_rmse_deg: float
+    drift_pct: float
+    drift_deg_per_100m: float
+
+    def as_dict(self) -> dict:
+        return {k: _clean(v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class EvalReport:
+    results_dir: Path
+    sessions: list[str]
+    per_session: dict[str, dict[str, TrajectoryMetrics]]  # session -> kind -> metrics
+    run: dict[str, dict[str, float]]  # kind -> pooled numbers
+    loops: LoopMetrics | None
+    config: EvalConfig
+    errors_over_time: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
+        default_factory=dict, repr=False
+    )  # session -> kind -> (time_s, ATE errors)
+
+    def as_dict(self) -> dict:
+        return {
+            "results_dir": str(self.results_dir),
+            "sessions": self.sessions,
+            "per_session": {
+                s: {k: m.as_dict() for k, m in kinds.items()}
+                for s, kinds in self.per_session.items()
+            },
+            "run": {k: {n: _clean(v) for n, v in d.items()} for k, d in self.run.items()},
+            "loops": self.loops.as_dict() if self.loops is not None else None,
+            "config": self.config.model_dump(mode="json"),
+        }
+
+
+def _clean(v):
+    if isinstance(v, (float, np.floating)):
+        return float(v) if np.isfinite(v) else None
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+# --- reading -----------------------------------------------------------------------------------
+
+
+@dataclass
+class ResultsFolder:
+    path: Path
+    sessions: list[str]  # processing order
+    trajectories: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]  # session -> kind -> (t, T)
+    loops_path: Path | None
+
+
+def read_results(results_dir: str | Path) -> ResultsFolder:
+    d = Path(results_dir)
+    if not d.is_dir():
+        raise DataError(f"{d}: results folder does not exist")
+    found: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for kind, prefix in _PREFIX.items():
+        for p in sorted(d.glob(f"{prefix}*.tum")):
+            session = p.stem[len(prefix) :]
+            found.setdefault(session, {})[kind] = read_tum(p)
+    if not found:
+        raise DataError(f"{d}: no poses_*.tum, odometry_*.tum or gt_*.tum files")
+    no_gt = [s for s, k in found.items() if "gt" not in k]
+    if no_gt:
+        raise DataError(f"{d}: no ground truth gt_<session>.tum for sessions {no_gt}")
+    no_est = [s for s, k in found.items() if not ({"slam", "odometry"} & set(k))]
+    if no_est:
+        raise DataError(f"{d}: sessions {no_est} have ground truth but no estimate")
+    order = _session_order(d, found)
+    loops = d / "loops.csv"
+    return ResultsFolder(d, order, found, loops if loops.is_file() else None)
+
+
+def _session_order(d: Path, found: dict) -> list[str]:
+    run = d / "run.json"
+    if run.is_file():
+        try:
+            listed = json.loads(run.read_text()).get("sessions")
+        except (json.JSONDecodeError, AttributeError):
+            raise DataError(f"{run}: not a JSON object with a 'sessions' list") from None
+        if not isinstance(listed, list) or not all(isinstance(s, str) for s in listed):
+            raise DataError(f"{run}: 'sessions' must be a list of names")
+        missing = [s for s in listed if s not in found]
+        if missing:
+            raise DataError(f"{run}: sessions {missing} have no trajectory files")
+        return listed + sorted(s for s in found if s not in listed)
+
+    def first_t(s):
+        t = found[s]["gt"][0]
+        return int(t.min()) if t.size else 0
+
+    return sorted(found, key=lambda s: (first_t(s), s))
+
+
+def associate(
+    est_t: np.ndarray, gt_t: np.ndarray, max_diff_us: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (i_est, i_gt) pairing each estimate with the nearest ground truth in time."""
+    if gt_t.size == 0 or est_t.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    order = np.argsort(gt_t, kind="stable")
+    g = gt_t[order]
+    pos = np.clip(np.searchsorted(g, est_t), 1, len(g) - 1) if len(g) > 1 else np.zeros_like(est_t)
+    left = np.clip(pos - 1, 0, len(g) - 1)
+    right = np.clip(pos, 0, len(g) - 1)
+    take_right = np.abs(g[right] - est_t) < np.abs(g[left] - est_t)
+    nearest = np.where(take_right, right, left)
+    ok = np.abs(g[nearest] - est_t) <= max_diff_us
+    return np.nonzero(ok)[0], order[nearest[ok]]
+
+
+# --- metrics -----------------------------------------------------------------------------------
+
+
+def trajectory_metrics(
+    est: np.ndarray, ref: np.ndarray, t_us: np.ndarray, cfg: EvalConfig
+) -> tuple[TrajectoryMetrics, np.ndarray]:
+    a = ate(est, ref, align="se2")
+    f = ate(est, ref, align="first")
+    r_t = rpe(est, ref, t_us, delta=cfg.rpe_time_s, unit="s")
+    r_d = rpe(est, ref, t_us, delta=cfg.rpe_distance_m, unit="m")
+    dr = drift(est, ref, segment_lengths_m=cfg.drift_segment_lengths_m)
+    m = TrajectoryMetrics(
+        num_poses=len(est),
+        path_length_m=float(path_lengths_m(to_xy_yaw(ref))[-1]),
+        ate_rmse_m=a.rmse_m,
+        ate_max_m=a.max_m,
+        ate_first_rmse_m=f.rmse_m,
+        ate_final_first_m=float(f.errors_m[-1]),
+        rpe_time_trans_rmse_m=r_t.trans_rmse_m,
+        rpe_time_rot_rmse_deg=r_t.rot_rmse_deg,
+        rpe_dist_trans_rmse_m=r_d.trans_rmse_m,
+        rpe_dist_rot_rmse_deg=r_d.rot_rmse_deg,
+        drift_pct=dr.translation_pct,
+        drift_deg_per_100m=dr.rotation_deg_per_100m,
+    )
+    return m, a.errors_m
+
+
+def evaluate_results(
+    results_dir: str | Path, config: EvalConfig | None = None, write: bool = True
+) -> EvalReport:
+    cfg = config or EvalConfig()
+    folder = read_results(results_dir)
+    per_session: dict[str, dict[str, TrajectoryMetrics]] = {}
+    errors_t: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    pooled: dict[str, dict[str, list]] = {
+        k: {"ate": [], "first": [], "est": [], "ref": []} for k in KINDS
+    }
+    gt_for_loops: dict[str, SessionGroundTruth] = {}
+    for s in folder.sessions:
+        traj = folder.trajectories[s]
+        gt_t, gt_p = traj["gt"]
+        gt_for_loops[s] = SessionGroundTruth(gt_t, gt_p)
+        per_session[s] = {}
+        errors_t[s] = {}
+        for kind in KINDS:
+            if kind not in traj:
+                continue
+            est_t, est_p = traj[kind]
+            i_e, i_g = associate(est_t, gt_t, cfg.max_time_diff_us)
+            if len(i_e) < 2:
+                raise DataError(
+                    f"{folder.path}/{_PREFIX[kind]}{s}.tum: only {len(i_e)} poses match the ground "
+                    f"truth in time (within {cfg.max_time_diff_us} us); need at least 2"
+                )
+            e, r, t = est_p[i_e], gt_p[i_g], est_t[i_e]
+            m, errs = trajectory_metrics(e, r, t, cfg)
+            per_session[s][kind] = m
+            errors_t[s][kind] = ((t - t[0]) / 1e6, errs)
+            pooled[kind]["ate"].append(errs)
+            pooled[kind]["first"].append(ate(e, r, align="first").errors_m)
+            pooled[kind]["est"].append(e)
+            pooled[kind]["ref"].append(r)
+    run: dict[str, dict[str, float]] = {}
+    for kind in KINDS:
+        p = pooled[kind]
+        if not p["ate"]:
+            continue
+        all_err = np.concatenate(p["ate"])
+        first_err = np.concatenate(p["first"])
+        joint = ate(np.concatenate(p["est"]), np.concatenate(p["ref"]), align="se2")
+        run[kind] = {
+            "num_sessions": len(p["ate"]),
+            "num_poses": int(all_err.size),
+            "ate_rmse_m": float(np.sqrt(np.mean(all_err**2))),
+            "ate_first_rmse_m": float(np.sqrt(np.mean(first_err**2))),
+            "ate_joint_rmse_m": joint.rmse_m,
+        }
+    loop_metrics = None
+    if folder.loops_path is not None:
+        loop_metrics = evaluate_loops(
+            read_loops_csv(folder.loops_path), gt_for_loops, cfg.loops, folder.sessions
+        )
+    report = EvalReport(
+        results_dir=folder.path,
+        sessions=folder.sessions,
+        per_session=per_session,
+        run=run,
+        loops=loop_metrics,
+        config=cfg,
+        errors_over_time=errors_t,
+    )
+    if write:
+        write_json_atomic(folder.path / "metrics.json", report.as_dict())
+        if cfg.plots:
+            write_plots(folder, report)
+    return report
+
+
+def write_plots(folder: ResultsFolder, report: EvalReport) -> None:
+    from radarslam.eval.plots import (
+        ErrorSeries,
+        LoopSegment,
+        TrajectoryPlotData,
+        plot_errors_over_time,
+        plot_trajectories,
+    )
+
+    def xy(kind, s):
+        tr = folder.trajectories[s].get(kind)
+        return None if tr is None else tr[1][:, :2, 3]
+
+    lookup = {}
+    for s in folder.sessions:
+        for kind in ("slam", "odometry"):
+            tr = folder.trajectories[s].get(kind)
+            if tr is not None:
+                lookup.setdefault(s, {int(t): p[:2, 3] for t, p in zip(tr[0], tr[1], strict=True)})
+    segments = []
+    if report.loops is not None:
+        for j in report.loops.judgements:
+            lp = j.loop
+            if not lp.accepted:
+                continue
+            a = lookup.get(lp.query.session, {}).get(lp.query_timestamp_us)
+            b = lookup.get(lp.candidate.session, {}).get(lp.candidate_timestamp_us)
+            if a is not None and b is not None:
+                segments.append(LoopSegment(a, b, j.correct))
+    trajs = [
+        TrajectoryPlotData(s, xy("slam", s), xy("gt", s), xy("odometry", s))
+        for s in folder.sessions
+    ]
+    plots = folder.path / "plots"
+    plot_trajectories(plots / "trajectories.png", trajs, segments, title="SLAM vs odometry vs GT")
+    for s in folder.sessions:
+        errs = report.errors_over_time.get(s, {})
+        plot_errors_over_time(
+            plots / f"errors_{s}.png",
+            [ErrorSeries(s, v[0], {k: v[1]}) for k, v in errs.items()],
+            title=f"{s}: ATE position error (SE(2)-aligned)",
+        )

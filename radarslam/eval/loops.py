@@ -1,0 +1,181 @@
+"""Loop-closure precision and recall against ground-truth revisits.
+
+- An *accepted* loop is **correct** when its estimated ``candidate_from_query`` agrees with the
+  ground-truth relative pose within ``max_translation_error_m`` and ``max_rotation_error_deg``.
+  Precision = correct / accepted.
+- A key frame is a **GT revisit query** when some key frame processed before it lies within
+  ``revisit_radius_m`` (planar ground truth), excluding the recent past of its own pass: frames of
+  the same session less than ``exclude_recent_s`` older. Sessions are processed in the given order
+  (default: by first timestamp). Recall = revisit queries with >= 1 correct accepted loop / all
+  revisit queries.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import Field
+
+from radarslam.config import StrictModel
+from radarslam.errors import DataError
+from radarslam.eval.metrics import se2_between, to_xy_yaw
+from radarslam.geometry import matrix_to_se2
+from radarslam.slam.records import LoopCandidate, NodeKey
+
+
+class LoopEvalConfig(StrictModel):
+    revisit_radius_m: float = Field(10.0, gt=0)
+    exclude_recent_s: float = Field(30.0, ge=0)
+    max_translation_error_m: float = Field(2.0, gt=0)
+    max_rotation_error_deg: float = Field(5.0, gt=0)
+
+
+@dataclass(frozen=True)
+class SessionGroundTruth:
+    timestamps_us: np.ndarray  # (N,) int64, key frame i at row i
+    poses: np.ndarray  # (N, 4, 4) or (N, 3)
+
+
+@dataclass(frozen=True)
+class LoopJudgement:
+    loop: LoopCandidate
+    translation_error_m: float
+    rotation_error_deg: float
+    gt_distance_m: float  # planar distance between the two key frames
+    correct: bool
+
+
+@dataclass(frozen=True)
+class LoopMetrics:
+    num_candidates: int
+    num_accepted: int
+    num_correct: int
+    precision: float  # NaN without accepted loops
+    num_revisit_queries: int
+    num_recalled_queries: int
+    recall: float  # NaN without GT revisits
+    candidates_within_radius: int  # candidates (accepted or not) that were true revisits
+    judgements: list[LoopJudgement] = field(repr=False, default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {
+            "num_candidates": self.num_candidates,
+            "num_accepted": self.num_accepted,
+            "num_correct": self.num_correct,
+            "precision": _nan_to_none(self.precision),
+            "num_revisit_queries": self.num_revisit_queries,
+            "num_recalled_queries": self.num_recalled_queries,
+            "recall": _nan_to_none(self.recall),
+            "candidates_within_radius": self.candidates_within_radius,
+        }
+
+
+def _nan_to_none(x: float):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+class _Lookup:
+    def __init__(self, gt: dict[str, SessionGroundTruth]):
+        self.xy_yaw = {s: to_xy_yaw(g.poses, f"ground truth of {s}") for s, g in gt.items()}
+        self.row = {
+            s: {int(t): i for i, t in enumerate(np.asarray(g.timestamps_us))} for s, g in gt.items()
+        }
+
+    def pose(self, key: NodeKey, timestamp_us: int) -> np.ndarray:
+        rows = self.row.get(key.session)
+        if rows is None:
+            raise DataError(f"loop evaluation: no ground truth for session {key.session!r}")
+        i = rows.get(int(timestamp_us))
+        if i is None:
+            raise DataError(
+                f"loop evaluation: key frame {key} at {timestamp_us} us is not in the ground truth"
+            )
+        return self.xy_yaw[key.session][i]
+
+
+def judge_loop(loop: LoopCandidate, lookup: _Lookup, config: LoopEvalConfig) -> LoopJudgement:
+    gq = lookup.pose(loop.query, loop.query_timestamp_us)
+    gc = lookup.pose(loop.candidate, loop.candidate_timestamp_us)
+    gt_rel = se2_between(gc, gq)  # candidate_from_query
+    est_rel = matrix_to_se2(np.asarray(loop.candidate_from_query, dtype=np.float64))
+    err = se2_between(gt_rel, est_rel)
+    t_err = float(np.hypot(err[0], err[1]))
+    r_err = float(np.degrees(abs(err[2])))
+    ok = t_err <= config.max_translation_error_m and r_err <= config.max_rotation_error_deg
+    return LoopJudgement(loop, t_err, r_err, float(np.hypot(*gt_rel[:2])), bool(ok))
+
+
+def gt_revisit_queries(
+    gt: dict[str, SessionGroundTruth],
+    config: LoopEvalConfig,
+    session_order: Sequence[str] | None = None,
+) -> set[NodeKey]:
+    """Key frames that revisit a place seen earlier (see module docstring)."""
+    from scipy.spatial import cKDTree
+
+    order = list(session_order) if session_order is not None else _chronological(gt)
+    missing = [s for s in order if s not in gt]
+    if missing:
+        raise DataError(f"loop evaluation: sessions {missing} have no ground truth")
+    keys: list[NodeKey] = []
+    xy, t, rank = [], [], []
+    for r, s in enumerate(order):
+        g = gt[s]
+        p = to_xy_yaw(g.poses, f"ground truth of {s}")
+        keys += [NodeKey(s, i) for i in range(len(p))]
+        xy.append(p[:, :2])
+        t.append(np.asarray(g.timestamps_us, dtype=np.int64))
+        rank.append(np.full(len(p), r))
+    if not keys:
+        return set()
+    xy_all, t_all, rank_all = np.concatenate(xy), np.concatenate(t), np.concatenate(rank)
+    tree = cKDTree(xy_all)
+    exclude_us = round(config.exclude_recent_s * 1e6)
+    out = set()
+    for n, near in enumerate(tree.query_ball_point(xy_all, config.revisit_radius_m)):
+        near = np.asarray(near, dtype=np.int64)
+        if near.size == 0:
+            continue
+        earlier_session = rank_all[near] < rank_all[n]
+        same_old = (rank_all[near] == rank_all[n]) & (t_all[near] < t_all[n] - exclude_us)
+        if np.any(earlier_session | same_old):
+            out.add(keys[n])
+    return out
+
+
+def _chronological(gt: dict[str, SessionGroundTruth]) -> list[str]:
+    def first(s):
+        ts = np.asarray(gt[s].timestamps_us)
+        return int(ts.min()) if ts.size else 0
+
+    return sorted(gt, key=lambda s: (first(s), s))
+
+
+def evaluate_loops(
+    loops: Sequence[LoopCandidate],
+    gt: dict[str, SessionGroundTruth],
+    config: LoopEvalConfig | None = None,
+    session_order: Sequence[str] | None = None,
+) -> LoopMetrics:
+    config = config or LoopEvalConfig()
+    lookup = _Lookup(gt)
+    judgements = [judge_loop(lp, lookup, config) for lp in loops]
+    accepted = [j for j in judgements if j.loop.accepted]
+    correct = [j for j in accepted if j.correct]
+    revisits = gt_revisit_queries(gt, config, session_order)
+    recalled = {j.loop.query for j in correct} & revisits
+    return LoopMetrics(
+        num_candidates=len(judgements),
+        num_accepted=len(accepted),
+        num_correct=len(correct),
+        precision=len(correct) / len(accepted) if accepted else float("nan"),
+        num_revisit_queries=len(revisits),
+        num_recalled_queries=len(recalled),
+        recall=len(recalled) / len(revisits) if revisits else float("nan"),
+        candidates_within_radius=sum(
+            j.gt_distance_m <= config.revisit_radius_m for j in judgements
+        ),
+        judgements=judgements,
+    )

@@ -1,0 +1,103 @@
+"""Static map: key-frame clouds placed with the optimised poses, moving points removed, voxelised.
+
+A radar point is kept as static when its ego-motion-compensated velocity is small (the radars
+measure it directly, so this needs no tracking). Voxels seen fewer than ``min_points_per_voxel``
+times are dropped as clutter. The map is written as PLY by :mod:`radarslam.slam.outputs`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field
+
+from radarslam.config import StrictModel
+from radarslam.errors import DataError
+
+
+class StaticMapConfig(StrictModel):
+    voxel_size_m: float = Field(0.5, gt=0)
+    max_static_speed_mps: float = Field(0.5, ge=0)  # |v_comp| above this is a moving object
+    min_points_per_voxel: int = Field(2, ge=1)
+
+
+@dataclass(frozen=True)
+class StaticMap:
+    xyz: np.ndarray  # (M, 3) voxel centroids in the world frame
+    rcs: np.ndarray  # (M,) mean RCS per voxel (NaN when unknown)
+    hits: np.ndarray  # (M,) number of points per voxel
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+
+class StaticMapBuilder:
+    def __init__(self, config: StaticMapConfig | None = None):
+        self.config = config or StaticMapConfig()
+        self._xyz: list[np.ndarray] = []
+        self._rcs: list[np.ndarray] = []
+        self.num_dynamic_removed = 0
+
+    def add(
+        self,
+        world_from_cloud: np.ndarray,
+        points,
+        velocity_comp_mps=None,
+        rcs=None,
+    ) -> None:
+        """Add one key frame's cloud: ``points`` (N, 2|3) in the cloud frame, or a structured
+        array with x, y, z (and vx_comp, vy_comp, rcs, used when present)."""
+        pose = np.asarray(world_from_cloud, dtype=np.float64)
+        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+            raise DataError(f"static map: cloud pose must be a finite 4x4, got {pose.shape}")
+        arr = np.asarray(points)
+        if arr.dtype.names:
+            names = arr.dtype.names
+            xyz = np.column_stack(
+                [arr["x"], arr["y"], arr["z"] if "z" in names else np.zeros(len(arr))]
+            ).astype(np.float64)
+            if velocity_comp_mps is None and "vx_comp" in names:
+                velocity_comp_mps = np.column_stack([arr["vx_comp"], arr["vy_comp"]])
+            if rcs is None and "rcs" in names:
+                rcs = arr["rcs"]
+        else:
+            arr = arr.astype(np.float64)
+            if arr.ndim != 2 or arr.shape[1] not in (2, 3):
+                raise DataError(f"static map: points must be (N, 2) or (N, 3), got {arr.shape}")
+            xyz = arr if arr.shape[1] == 3 else np.column_stack([arr, np.zeros(len(arr))])
+        keep = np.all(np.isfinite(xyz), axis=1)
+        if velocity_comp_mps is not None:
+            v = np.asarray(velocity_comp_mps, dtype=np.float64).reshape(len(xyz), -1)
+            moving = np.linalg.norm(v, axis=1) > self.config.max_static_speed_mps
+            self.num_dynamic_removed += int(np.count_nonzero(moving & keep))
+            keep &= ~moving
+        r = np.full(len(xyz), np.nan) if rcs is None else np.asarray(rcs, dtype=np.float64)
+        self._xyz.append(xyz[keep] @ pose[:3, :3].T + pose[:3, 3])
+        self._rcs.append(r[keep])
+
+    def build(self) -> StaticMap:
+        if not self._xyz:
+            return StaticMap(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64))
+        xyz = np.concatenate(self._xyz)
+        rcs = np.concatenate(self._rcs)
+        if len(xyz) == 0:
+            return StaticMap(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64))
+        cells = np.floor(xyz / self.config.voxel_size_m).astype(np.int64)
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.reshape(-1)
+        sums = np.zeros((len(counts), 3))
+        np.add.at(sums, inverse, xyz)
+        rcs_sum = np.zeros(len(counts))
+        rcs_n = np.zeros(len(counts))
+        finite = np.isfinite(rcs)
+        np.add.at(rcs_sum, inverse[finite], rcs[finite])
+        np.add.at(rcs_n, inverse[finite], 1)
+        keep = counts >= self.config.min_points_per_voxel
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_rcs = np.where(rcs_n > 0, rcs_sum / np.maximum(rcs_n, 1), np.nan)
+        return StaticMap(
+            xyz=sums[keep] / counts[keep, None],
+            rcs=mean_rcs[keep],
+            hits=counts[keep].astype(np.int64),
+        )

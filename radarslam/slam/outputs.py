@@ -1,0 +1,124 @@
+"""Writing a SLAM results folder (layout documented in docs/outputs.md), every file atomically.
+
+::
+
+    RESULTS_DIR/
+      run.json                      format tag and the session order (processing order)
+      poses_<session>.tum / .kitti  SLAM estimate per key frame (world_from_ego)
+      odometry_<session>.tum/.kitti odometry-only estimate, same key frames
+      gt_<session>.tum / .kitti     ground truth at the same timestamps
+      loops.csv                     every loop candidate, accepted or rejected, with the reason
+      map.ply                       static map (open3d PLY)
+      plots/map_bev.png             the map in bird's-eye view
+      pose_graph.g2o                (optional) the final graph
+      metrics.json, plots/*.png     written by ``radarslam eval RESULTS_DIR``
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from radarslam.errors import DataError
+from radarslam.io.atomic import atomic_path, write_json_atomic, write_text_atomic
+from radarslam.io.trajectory import write_kitti, write_tum
+from radarslam.slam.map import StaticMap
+from radarslam.slam.records import LoopCandidate, write_loops_csv
+
+RESULTS_FORMAT = "radarslam-results/1"
+_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+@dataclass(frozen=True)
+class SessionResult:
+    """One session's key-frame trajectories, row i = key frame i (``NodeKey.index``)."""
+
+    name: str
+    timestamps_us: np.ndarray  # (N,) int64
+    slam_poses: np.ndarray  # (N, 4, 4)
+    odometry_poses: np.ndarray | None = None
+    gt_poses: np.ndarray | None = None
+
+
+def check_session_name(name: str) -> str:
+    if not _SAFE_NAME.match(name or ""):
+        raise DataError(
+            f"session name {name!r} cannot be used in file names (letters, digits, _ . - only)"
+        )
+    return name
+
+
+def trajectory_paths(results_dir: str | Path, session: str) -> dict[str, Path]:
+    d = Path(results_dir)
+    return {
+        "slam": d / f"poses_{session}.tum",
+        "odometry": d / f"odometry_{session}.tum",
+        "gt": d / f"gt_{session}.tum",
+    }
+
+
+def write_session(results_dir: str | Path, result: SessionResult) -> None:
+    check_session_name(result.name)
+    d = Path(results_dir)
+    ts = np.asarray(result.timestamps_us)
+    for stem, poses in (
+        ("poses", result.slam_poses),
+        ("odometry", result.odometry_poses),
+        ("gt", result.gt_poses),
+    ):
+        if poses is None:
+            continue
+        write_tum(d / f"{stem}_{result.name}.tum", ts, poses)
+        write_kitti(d / f"{stem}_{result.name}.kitti", poses)
+
+
+def write_map_ply(path: str | Path, static_map: StaticMap) -> None:
+    """The static map as PLY via open3d (points; colours encode RCS when known)."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(static_map.xyz, float)))
+    rcs = np.asarray(static_map.rcs, dtype=np.float64)
+    if len(rcs) and np.any(np.isfinite(rcs)):
+        lo, hi = np.nanpercentile(rcs, [2, 98])
+        v = np.clip((np.nan_to_num(rcs, nan=lo) - lo) / max(hi - lo, 1e-9), 0, 1)
+        pc.colors = o3d.utility.Vector3dVector(np.column_stack([v, 0.5 * np.ones_like(v), 1 - v]))
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+            raise DataError(f"{path}: open3d could not write the map")
+
+
+def write_results(
+    results_dir: str | Path,
+    sessions: Sequence[SessionResult],
+    loops: Sequence[LoopCandidate] | None = None,
+    static_map: StaticMap | None = None,
+    config_yaml: str | None = None,
+    plots: bool = True,
+) -> Path:
+    """Write everything a run produced; ``radarslam eval`` reads it back."""
+    d = Path(results_dir)
+    names = [check_session_name(s.name) for s in sessions]
+    if len(set(names)) != len(names):
+        raise DataError(f"results: duplicate session names in {names}")
+    for s in sessions:
+        write_session(d, s)
+    if loops is not None:
+        write_loops_csv(d / "loops.csv", list(loops))
+    if static_map is not None:
+        write_map_ply(d / "map.ply", static_map)
+        if plots:
+            from radarslam.eval.plots import plot_map_bev
+
+            plot_map_bev(
+                d / "plots" / "map_bev.png",
+                static_map.xyz,
+                [np.asarray(s.slam_poses)[:, :2, 3] for s in sessions],
+            )
+    if config_yaml is not None:
+        write_text_atomic(d / "config.yaml", config_yaml)
+    write_json_atomic(d / "run.json", {"format": RESULTS_FORMAT, "sessions": names})
+    return d

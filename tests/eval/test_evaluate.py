@@ -1,0 +1,135 @@
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from radarslam.cli import app
+from radarslam.errors import DataError
+from radarslam.eval.evaluate import EvalConfig, associate, evaluate_results
+from radarslam.eval.metrics import ate
+from radarslam.geometry import se2_to_matrix
+from radarslam.slam.outputs import SessionResult, write_results
+from radarslam.slam.records import LoopCandidate, NodeKey
+from radarslam.slam.synthetic_graph import multilap_circuit
+
+
+def _results(tmp_path, with_loops=True):
+    sg = multilap_circuit(num_laps=2, poses_per_lap=60, seed=4)
+    n = len(sg.gt)
+    ts = 1_600_000_000_000_000 + np.arange(n, dtype=np.int64) * 500_000
+    rng = np.random.default_rng(0)
+    slam = np.stack([g @ se2_to_matrix(*rng.normal(scale=[0.2, 0.2, 0.005])) for g in sg.gt])
+    # a second session: the first lap again, an hour later, shifted in its own frame
+    shift = se2_to_matrix(3.0, -2.0, 0.1)
+    b_gt = sg.gt[:60]
+    b_odo = np.stack([shift @ p for p in sg.dead_reckoning[:60]])
+    sessions = [
+        SessionResult("scene-a", ts, slam, sg.dead_reckoning, sg.gt),
+        SessionResult("scene-b", ts[:60] + 3_600_000_000, b_gt.copy(), b_odo, b_gt),
+    ]
+    loops = None
+    if with_loops:
+        loops = [
+            LoopCandidate(
+                NodeKey("scene-a", lp.j),
+                NodeKey("scene-a", lp.i),
+                int(ts[lp.j]),
+                int(ts[lp.i]),
+                0.2,
+                True,
+                "ok",
+                lp.i_from_j,
+            )
+            for lp in sg.loops
+        ]
+        # a wrong accepted loop and a rejected one
+        loops.append(
+            LoopCandidate(
+                NodeKey("scene-a", 100),
+                NodeKey("scene-a", 10),
+                int(ts[100]),
+                int(ts[10]),
+                0.4,
+                True,
+                "ok",
+                se2_to_matrix(0.0, 0.0, 0.0),
+            )
+        )
+        loops.append(
+            LoopCandidate(
+                NodeKey("scene-b", 5),
+                NodeKey("scene-a", 5),
+                int(ts[5] + 3_600_000_000),
+                int(ts[5]),
+                0.5,
+                False,
+                "fitness 0.1 < 0.5",
+            )
+        )
+    write_results(tmp_path, sessions, loops=loops)
+    return sg, ts, slam
+
+
+def test_evaluate_results_folder(tmp_path):
+    sg, _ts, slam = _results(tmp_path)
+    report = evaluate_results(tmp_path, EvalConfig(plots=True))
+    assert report.sessions == ["scene-a", "scene-b"]
+    a = report.per_session["scene-a"]
+    assert a["slam"].ate_rmse_m == pytest.approx(ate(slam, sg.gt).rmse_m, abs=1e-9)
+    assert a["odometry"].ate_rmse_m == pytest.approx(ate(sg.dead_reckoning, sg.gt).rmse_m)
+    assert a["odometry"].ate_first_rmse_m > a["odometry"].ate_rmse_m
+    b = report.per_session["scene-b"]
+    assert b["slam"].ate_rmse_m == pytest.approx(0.0, abs=1e-9)
+    assert b["odometry"].ate_rmse_m > 0.1  # alignment cannot remove drift
+    # the run-level joint alignment of odometry suffers from b's own frame, SLAM does not
+    run = report.run
+    assert run["odometry"]["ate_joint_rmse_m"] > run["odometry"]["ate_rmse_m"]
+    assert run["slam"]["num_poses"] == 180
+    lm = report.loops
+    n_true = len(sg.loops)
+    assert lm.num_candidates == n_true + 2 and lm.num_accepted == n_true + 1
+    assert lm.precision == pytest.approx(n_true / (n_true + 1))
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    assert data["per_session"]["scene-a"]["slam"]["ate_rmse_m"] == pytest.approx(
+        a["slam"].ate_rmse_m
+    )
+    assert data["loops"]["num_correct"] == n_true
+    for name in ("trajectories.png", "errors_scene-a.png", "errors_scene-b.png"):
+        assert (tmp_path / "plots" / name).stat().st_size > 10_000
+    assert (tmp_path / "poses_scene-a.kitti").is_file()
+    assert json.loads((tmp_path / "run.json").read_text())["sessions"] == ["scene-a", "scene-b"]
+
+
+def test_eval_cli(tmp_path):
+    _results(tmp_path, with_loops=False)
+    res = CliRunner().invoke(app, ["eval", str(tmp_path), "--no-plots",
+                                   "--set", "rpe_distance_m=5"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "scene-a" in res.output and "RPE 5m" in res.output
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    assert data["loops"] is None and data["config"]["rpe_distance_m"] == 5.0
+    assert not (tmp_path / "plots").exists()
+
+
+def test_eval_errors(tmp_path):
+    with pytest.raises(DataError, match="does not exist"):
+        evaluate_results(tmp_path / "nope")
+    with pytest.raises(DataError, match="no poses_"):
+        evaluate_results(tmp_path)
+    _results(tmp_path, with_loops=False)
+    (tmp_path / "gt_scene-b.tum").unlink()
+    with pytest.raises(
+        DataError, match=r"no ground truth gt_<session>\.tum for sessions \['scene-b'\]"
+    ):
+        evaluate_results(tmp_path)
+    with pytest.raises(DataError, match="cannot be used in file names"):
+        write_results(
+            tmp_path, [SessionResult("a/b", np.zeros(1, dtype=np.int64), np.eye(4)[None])]
+        )
+
+
+def test_associate_nearest_within_tolerance():
+    gt = np.array([0, 100, 200, 300])
+    i_e, i_g = associate(np.array([101, 260, 500, 0]), gt, 50)
+    assert list(i_e) == [0, 1, 3] and list(i_g) == [1, 3, 0]
