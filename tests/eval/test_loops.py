@@ -68,7 +68,8 @@ def test_second_session_revisits_the_first_and_errors():
     a = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)])
     ts_a = np.arange(10, dtype=np.int64) * 1_000_000
     ts_b = ts_a + 100_000_000
-    gt = {"b": SessionGroundTruth(ts_b, [*a, 0.2, 0.0, 0.0]), "a": SessionGroundTruth(ts_a, a)}
+    shifted = a + np.array([0.2, 0.0, 0.0])
+    gt = {"b": SessionGroundTruth(ts_b, shifted), "a": SessionGroundTruth(ts_a, a)}
     cfg = LoopEvalConfig(revisit_radius_m=0.5, exclude_recent_s=0.0)
     assert gt_revisit_queries(gt, cfg) == {NodeKey("b", k) for k in range(10)}
     # processed the other way round, a revisits b
