@@ -143,7 +143,7 @@ def query_cmd(
     scene: str = typer.Option(..., help="scene whose key frames are queried"),
     version: str = typer.Option("v1.0-trainval", help="nuScenes version"),
     sample_token: str | None = typer.Option(None, help="only this key frame"),
-    k: int = typer.Option(5, help="candidates per query"),
+    k: int = typer.Option(5, "-k", "--top-k", help="candidates per query"),
     checkpoint: Path | None = typer.Option(None, help="checkpoint (default: the database's)"),
 ) -> None:
     """Top-k places for key frames of a scene (the database is not modified)."""
@@ -163,3 +163,37 @@ def query_cmd(
         typer.echo(f"{token}: {text}")
     if sample_token is not None and not found:
         raise DataError(f"sample {sample_token!r} is not a key frame of scene {scene!r}")
+
+
+@pr_app.command("ablation")
+def ablation_cmd(
+    config: Path = typer.Argument(..., help="prepare YAML (configs/place_recognition/data_*.yaml)"),
+    dataroot: Path | None = typer.Option(None, help="nuScenes-layout dataroot (overrides config)"),
+    cache_root: Path = typer.Option(Path("outputs/place_recognition"), help="cache root"),
+    out: Path = typer.Option(Path("outputs/place_recognition/ablation"), help="output directory"),
+    size: str = typer.Option("compact", help="model size: compact | paper"),
+    train: str = typer.Option("compact_cpu", help="train preset for variants without checkpoint"),
+    checkpoint_dir: Path | None = typer.Option(None, help="<size>_<slug>.pt checkpoints"),
+    no_train: bool = typer.Option(False, help="fail instead of training a missing variant"),
+    device: str = typer.Option("cpu", help="descriptor device"),
+) -> None:
+    """Table II: SE, SE+TE, SE+DPR, SE+TE+DPR with/without RCSHR (tuned on val) on test."""
+    from place_recognition.ablation import load_pair, run_ablation, table_ii_rows
+    from place_recognition.config import load_prepare_config
+    from place_recognition.evaluate import write_results
+
+    cfg = load_prepare_config(config, [f"source.dataroot={dataroot}"] if dataroot else None)
+    data, data_nodpr = load_pair(cfg, cache_root)
+    runs = run_ablation(
+        data,
+        data_nodpr,
+        out / "train",
+        size=size,
+        train_preset=train,
+        checkpoint_dir=checkpoint_dir,
+        allow_train=not no_train,
+        device=device,
+    )
+    rows = table_ii_rows(runs)
+    write_results([r for run in runs for r in run.results], out, stem=f"ablation_{size}")
+    _echo_table(rows)
