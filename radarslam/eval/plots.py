@@ -81,6 +81,9 @@ def plot_trajectories(
         ax.plot([lp.query_xy[0], lp.candidate_xy[0]], [lp.query_xy[1], lp.candidate_xy[1]],
                 color=color, lw=0.8, alpha=0.8,
                 label=f"loop ({kind})" if kind not in drawn else None)  # fmt: skip
+        # revisits of the same spot give near zero-length segments: mark the ends too
+        ax.plot([lp.query_xy[0], lp.candidate_xy[0]], [lp.query_xy[1], lp.candidate_xy[1]],
+                "o", color=color, ms=3, alpha=0.8)  # fmt: skip
         drawn.add(kind)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
