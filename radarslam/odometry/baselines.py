@@ -69,6 +69,10 @@ class PlainKissIcpOdometry:
             if self.config.initial_pose == "ground_truth":
                 self._origin = planar(np.asarray(frame.world_from_ego, dtype=np.float64))
         kiss = self._kiss
+        # Re-orthonormalise before kiss-icp composes last_pose @ last_delta in numpy: Sophus aborts
+        # the whole process on a rotation that is not orthogonal.
+        kiss.last_pose = planar(kiss.last_pose)
+        kiss.last_delta = planar(kiss.last_delta)
         min_pts = self.config.registration.min_source_points
         if len(points) >= min_pts or (first and len(points)):
             kiss.register_frame(points, np.zeros(len(points)))

@@ -127,6 +127,17 @@ def _fuse_cov(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
+#: chi-square, 3 dof, 99 %: a static-rule twist closer than this to 0 is taken as exactly 0.
+_ZERO_VELOCITY_CHI2 = 11.34
+
+
+def _chi2(x: np.ndarray, cov: np.ndarray) -> float:
+    try:
+        return float(x @ np.linalg.solve(cov, x))
+    except np.linalg.LinAlgError:
+        return float("inf")
+
+
 def _sym(m: np.ndarray) -> np.ndarray:
     return 0.5 * (m + m.T)
 
@@ -149,6 +160,7 @@ class RadarOdometry:
         self._t_us: int | None = None
         self._twist = np.zeros(3)
         self._twist_cov = np.eye(3)
+        self._stopped = False
         self._last_icp_cov: np.ndarray | None = None
         self._rejections = 0
         self._kf = _Interval()
@@ -218,9 +230,15 @@ class RadarOdometry:
                 f"the previous one ({self._t_us} us): frames must be in time order"
             )
         gap_s = 0.0 if self._t_us is None else (frame.timestamp_us - self._t_us) * 1e-6
+        stopped = False
         if fit.valid:
             twist = fit.twist
             twist_cov = _sym(fit.covariance) * cfg.fusion.doppler_cov_scale
+            if fit.ego_static and _chi2(twist, twist_cov) < _ZERO_VELOCITY_CHI2:
+                # Zero-velocity update: the static rule fired and the refitted twist cannot be
+                # told from 0, so integrating its noise would only add drift.
+                twist = np.zeros(3)
+                stopped = True
         else:
             twist = self._twist.copy()
             twist_cov = self._twist_cov + self._growth * max(gap_s, 1e-3)
@@ -243,7 +261,11 @@ class RadarOdometry:
             xi = 0.5 * (self._twist + twist) * gap_s
             delta = exp_se2(xi)
             jr = exp_jacobian_twist(xi)
-            xi_cov = 0.25 * (self._twist_cov + twist_cov) * gap_s**2 + self._q * gap_s
+            # Twist random walk (q per second) integrated over the interval: q dt^3.
+            xi_cov = 0.25 * (self._twist_cov + twist_cov) * gap_s**2
+            if not (stopped and self._stopped):
+                # A vehicle stopped at both ends of a 77 ms interval did not accelerate in it.
+                xi_cov = xi_cov + self._q * gap_s**3
             delta_cov = jr @ xi_cov @ jr.T
             ad = adjoint_se2(_inv_se2(delta))
             pose = self._pose @ delta
@@ -294,6 +316,7 @@ class RadarOdometry:
         self._pose, self._cov = pose, pose_cov
         self._t_us = frame.timestamp_us
         self._twist, self._twist_cov = twist, twist_cov
+        self._stopped = stopped
         self._last_icp_cov = icp_cov
         t4 = time.perf_counter()
         return OdometryResult(

@@ -205,6 +205,7 @@ def drive(
     missing: dict[str, tuple[int, int]] | None = None,
     empty: tuple[int, int] | None = None,
     moving_fraction: float = 0.0,
+    key_frame_every: int = 6,
     **noise,
 ) -> list[RadarFrame]:
     """Frames along a unicycle path; radars fire staggered within the frame (up to ~60 ms)."""
@@ -239,7 +240,14 @@ def drive(
                 ch, pts, timestamp_us=t_ref + round(dt_c * 1e6), world_from_ego=wfe
             )
         frames.append(
-            RadarFrame(timestamp_us=t_ref, sweeps=sweeps, world_from_ego=world_from_ego_ref)
+            RadarFrame(
+                timestamp_us=t_ref,
+                sweeps=sweeps,
+                world_from_ego=world_from_ego_ref,
+                scene_name="synthetic",
+                is_key_frame=k % key_frame_every == 0,
+                sample_token=f"sample{k}" if k % key_frame_every == 0 else "",
+            )
         )
         v, w = profile(speed_mps, k), profile(yaw_rate_radps, k)
         x, y, yaw = _integrate(x, y, yaw, v, w, dt_s)
