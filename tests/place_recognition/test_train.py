@@ -37,7 +37,7 @@ TINY = ModelConfig(
     descriptor_dim=16,
 )
 # One thread: CPU convolution backward is only bitwise deterministic single-threaded.
-FAST = dict(epochs=4, select_after_epoch=0, patience=0, seed=1234, threads=1)
+FAST = dict(epochs=4, select_after_epoch=0, patience=0, seed=1234, threads=1, device="cpu")
 
 
 def corridor_data(seed: int = 0, n_db: int = 60, size: int = 32, step_m: float = 2.0):
@@ -346,3 +346,27 @@ def test_bad_data_is_data_error(data, tmp_path):
     wrong_size = TINY.model_copy(update={"image_size_px": 64})
     with pytest.raises(DataError, match="model expects"):
         train(TrainConfig(**FAST), wrong_size, data, tmp_path, progress=False)
+
+
+def test_export_weights_writes_float16_checkpoint_and_json(data, full_run, tmp_path):
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location(
+        "train_weights", Path(__file__).resolve().parents[2] / "tools" / "train_weights.py"
+    )
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    result, _ = full_run
+    weights = tmp_path / "weights" / "compact.pt"
+    info = tool.export_weights(result.best_checkpoint, data, weights, extra={"note": "test"})
+    saved = json.loads(weights.with_suffix(".json").read_text())
+    assert saved == json.loads(json.dumps(info))
+    assert saved["selected_epoch"] == 3 and saved["note"] == "test"
+    assert saved["val_recall_at_selection"]["1"] == result.best_recall_at_1
+    # float16 storage moves R@1 by at most one of the 57 val queries here
+    assert abs(saved["val_recall_float16"]["1"] - result.best_recall_at_1) <= 1 / 57 + 1e-9
+    assert saved["data"]["n_val"] == 57 and saved["train_config"]["epochs"] == 4
+    model, cfg, meta = load_model(weights, expect=TINY)
+    assert meta["stored_dtype"] == "float16" and cfg == TINY
+    assert all(p.dtype == torch.float32 for p in model.parameters())

@@ -1,0 +1,220 @@
+#!/usr/bin/env python
+"""Train the shipped AutoPlace weights end to end: simulate -> prepare -> train -> export.
+
+    # everything from scratch (synthetic city, prepare, compact SE+TE on the CPU budget preset)
+    python tools/train_weights.py --simulate city --dataroot data/city
+    # reuse a prepared cache, train on a GPU with the reference schedule
+    python tools/train_weights.py --prepared outputs/place_recognition/city \
+        --train paper --model compact_se_te --weights place_recognition/weights/compact.pt
+    # quick proof run on the tiny preset (minutes on a CPU)
+    python tools/train_weights.py --simulate tiny --dataroot /tmp/tiny --set-train epochs=2 ...
+
+Steps:
+  (a) the dataroot: generated with ``radarslam.sim`` when ``--simulate PRESET`` is given and the
+      dataroot is not complete yet; otherwise an existing nuScenes-layout root (real or synthetic);
+  (b) the prepared cache via ``place_recognition.prepare`` (stages already cached are reused);
+  (c) training (``place_recognition.train.train``; ``--resume`` continues ``WORK/last.pt``);
+  (d) export: the best checkpoint is re-saved with float16 weights (loaded back as float32) to
+      ``--weights``, with a JSON beside it holding the validation numbers (those of the selection
+      run and re-measured with the exported float16 weights), the configs, the data summary, the
+      training history and the git commit that made it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+DEFAULT_WEIGHTS = REPO / "place_recognition" / "weights" / "compact.pt"
+
+
+def git_state() -> dict[str, Any]:
+    def run(*cmd: str) -> str | None:
+        try:
+            out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return out.stdout.strip() if out.returncode == 0 else None
+
+    status = run("git", "status", "--porcelain", "--", "place_recognition", "configs")
+    return {"commit": run("git", "rev-parse", "HEAD"), "dirty": bool(status)}
+
+
+def validation_recall(model, data, ns: list[int], batch_size: int, device: str) -> dict[int, float]:
+    import torch
+
+    from place_recognition.train import compute_descriptors, recall_at_n_from_descriptors
+
+    db_idx, val_idx = data.splits["database"], data.splits["val"]
+    db = compute_descriptors(model, data, db_idx, batch_size=batch_size, device=device)
+    q = compute_descriptors(model, data, val_idx, batch_size=batch_size, device=device)
+    return recall_at_n_from_descriptors(
+        torch.from_numpy(db), torch.from_numpy(q), db_idx, val_idx, data, ns
+    )
+
+
+def export_weights(
+    checkpoint: Path,
+    data: Any,
+    weights: Path,
+    extra: dict[str, Any] | None = None,
+    device: str = "cpu",
+    batch_size: int = 32,
+) -> dict[str, Any]:
+    """Re-save ``checkpoint`` with float16 weights at ``weights`` plus a JSON; returns the JSON."""
+    from place_recognition.checkpoint import load_model, read_checkpoint, save_checkpoint
+    from radarslam.io.atomic import write_json_atomic
+
+    payload = read_checkpoint(checkpoint)
+    model, model_cfg, meta = load_model(checkpoint, device=device)
+    train_cfg = payload.get("train_config")
+    ns = list((train_cfg or {}).get("recall_ns") or [1, 5, 10, 20])
+    selection = {str(k): v for k, v in (meta.get("val_recall") or {}).items()}
+    info = {
+        "file": weights.name,
+        "model_config": model_cfg.model_dump(mode="json"),
+        "train_config": train_cfg,
+        "selected_epoch": meta.get("epoch"),
+        "val_recall_at_selection": selection,
+        "data": {
+            "root": str(getattr(data, "root", "")),
+            "n_database": len(data.splits["database"]),
+            "n_train": len(data.splits["train"]),
+            "n_val": len(data.splits["val"]),
+            "n_test": len(data.splits.get("test", [])),
+            "pos_radius_m": float(data.pos_radius_m),
+            "neg_radius_m": float(data.neg_radius_m),
+        },
+        "git": git_state(),
+        "trained_at_commit": meta.get("git_commit"),
+        "python": platform.python_version(),
+        **(extra or {}),
+    }
+    save_checkpoint(weights, model, model_cfg, train_cfg, meta=info, half=True)
+    shipped, _, _ = load_model(weights, device=device, expect=model_cfg)
+    recall = validation_recall(shipped, data, ns, batch_size, device)
+    info["val_recall_float16"] = {str(k): v for k, v in recall.items()}
+    info["size_bytes"] = weights.stat().st_size
+    write_json_atomic(weights.with_suffix(".json"), info)
+    return info
+
+
+def ensure_dataroot(args) -> Path | None:
+    if args.dataroot is None:
+        return None
+    root = Path(args.dataroot)
+    if args.simulate:
+        from radarslam.sim.config import load_sim_config
+        from radarslam.sim.generate import is_complete, simulate
+
+        version = load_sim_config(args.simulate, args.set_sim).output.version
+        if not is_complete(root, version):
+            print(f"[train_weights] simulating '{args.simulate}' into {root}", flush=True)
+            s = simulate(args.simulate, root, overrides=args.set_sim, overwrite=True)
+            print(f"[train_weights] {s.n_samples} key frames in {s.seconds:.0f} s", flush=True)
+    elif not root.is_dir():
+        from radarslam.errors import DataError
+
+        raise DataError(f"{root}: dataroot does not exist (pass --simulate PRESET to generate it)")
+    return root
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    src = parser.add_argument_group("data")
+    src.add_argument("--dataroot", type=Path, help="nuScenes-layout dataroot (generated if needed)")
+    src.add_argument("--simulate", metavar="PRESET", help="generate the dataroot: tiny, demo, city")
+    src.add_argument("--set-sim", action="append", default=[], help="simulation override")
+    src.add_argument("--prepared", type=Path, help="an existing prepared cache (skips a and b)")
+    src.add_argument("--data-config", default="data_city", help="prepare preset or YAML")
+    src.add_argument("--set-data", action="append", default=[], help="prepare override")
+    src.add_argument("--cache-root", type=Path, default=REPO / "outputs" / "place_recognition")
+    trn = parser.add_argument_group("training")
+    trn.add_argument("--model", default="compact_se_te", help="model preset or YAML")
+    trn.add_argument("--set-model", action="append", default=[], help="model override")
+    trn.add_argument("--train", default="compact_cpu", help="train preset or YAML")
+    trn.add_argument("--set-train", action="append", default=[], help="train override")
+    trn.add_argument("--work-dir", type=Path, default=None, help="checkpoints (default: cache)")
+    trn.add_argument("--resume", action="store_true", help="continue WORK/last.pt")
+    trn.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS, help="exported .pt")
+    args = parser.parse_args(argv)
+
+    from radarslam.errors import RadarSlamError
+
+    try:
+        return run(args)
+    except RadarSlamError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+def run(args) -> int:
+    from place_recognition.dataset import load_prepared
+    from place_recognition.models import load_model_config
+    from place_recognition.train import load_train_config, train
+    from radarslam.errors import ConfigError
+
+    t0 = time.perf_counter()
+    if args.prepared is not None:
+        prepared = args.prepared
+    else:
+        root = ensure_dataroot(args)
+        if root is None:
+            raise ConfigError("give --prepared, or --dataroot (with --simulate to generate it)")
+        from place_recognition.config import load_prepare_config
+        from place_recognition.prepare import prepare
+
+        name = args.data_config
+        path = Path(name)
+        if not path.suffix:
+            path = REPO / "configs" / "place_recognition" / f"{name}.yaml"
+        cfg = load_prepare_config(path, [*args.set_data, f"source.dataroot={root}"])
+        prepared = prepare(cfg, args.cache_root, progress=not args.quiet)
+        print(f"[train_weights] prepared cache {prepared}", flush=True)
+    t_data = time.perf_counter() - t0
+    data = load_prepared(prepared)
+    model_cfg = load_model_config(args.model, args.set_model)
+    train_cfg = load_train_config(args.train, args.set_train)
+    work = args.work_dir or Path(prepared) / f"train_{model_cfg.preset}"
+    print(
+        f"[train_weights] {len(data)} frames: database {len(data.splits['database'])}, "
+        f"train {len(data.splits['train'])}, val {len(data.splits['val'])}; "
+        f"model {model_cfg.preset}, {train_cfg.epochs} epochs -> {work}",
+        flush=True,
+    )
+    t1 = time.perf_counter()
+    result = train(train_cfg, model_cfg, data, work, resume=args.resume, progress=not args.quiet)
+    t_train = time.perf_counter() - t1
+    info = export_weights(
+        result.best_checkpoint,
+        data,
+        args.weights,
+        extra={
+            "history": result.history,
+            "seconds": {"data": round(t_data, 1), "train": round(t_train, 1)},
+            "command": " ".join(sys.argv),
+        },
+        device="cpu",
+    )
+    print(
+        f"[train_weights] wrote {args.weights} ({info['size_bytes'] / 1e6:.2f} MB): best epoch "
+        f"{info['selected_epoch']}, val R@1 {info['val_recall_float16']['1']:.3f} (float16), "
+        f"train {t_train / 60:.1f} min",
+        flush=True,
+    )
+    print(json.dumps(info["val_recall_float16"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
