@@ -59,6 +59,11 @@ class DPRConfig(StrictModel):
     # a small floor stops a near-zero speed estimate from rejecting everything.
     inlier_threshold_mps: float = Field(0.0, ge=0.0)
     iterations: int = Field(10, ge=1, le=10_000)  # reference: 10 RANSAC iterations
+    # The static-ego rule looks at one radar: a side radar of a MOVING car sees its broadside
+    # static points at |v_r| < 1 m/s and can trip it, which would then keep only those points.
+    # When set, a tripped rule is cross-checked by plain RANSAC: a speed >= static_speed_mps that
+    # explains at least as many points means the sensor moves (departure from Algorithm 1).
+    verify_static_ego: bool = True
     seed: int = 12345
     # A sweep on which no consistent ego velocity is found: the reference drops it entirely.
     drop_sweep_on_failure: bool = True

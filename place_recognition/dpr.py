@@ -22,7 +22,11 @@ Departures from the reference code (autoplace.md §2), on purpose:
 - the estimator draws 2-point minimal sets and refits the consensus by least squares (the reference
   fits 5 points with ``least_squares`` and does not refit);
 - a sweep with 0 or 1 usable points, or on which no consistent velocity exists, is dropped
-  (``drop_sweep_on_failure``) instead of crashing.
+  (``drop_sweep_on_failure``) instead of crashing;
+- the static-ego rule, which looks at one radar, is cross-checked (``verify_static_ego``): a side
+  radar of a moving car sees many static points near broadside at |v_r| < 1 m/s and trips the
+  rule, which would then keep only those. When plain RANSAC finds a speed >= v_r^tau explaining at
+  least as many points as the rule kept, the sensor moves and the RANSAC inliers are kept.
 """
 
 from __future__ import annotations
@@ -71,16 +75,26 @@ def dpr_mask(
     n = len(radial_velocity_mps)
     if n == 0:
         return np.zeros(0, bool), False, True
-    fit = fit_sensor_velocity(
-        directions,
-        radial_velocity_mps,
+    common = dict(
         inlier_threshold_mps=cfg.inlier_threshold_mps,
         relative_threshold=cfg.relative_threshold,
         static_speed_mps=cfg.static_speed_mps,
-        static_fraction=cfg.static_fraction,
         iterations=cfg.iterations,
         rng=cfg.seed,
     )
+    fit = fit_sensor_velocity(
+        directions, radial_velocity_mps, static_fraction=cfg.static_fraction, **common
+    )
+    if cfg.verify_static_ego and fit.valid and fit.ego_static:
+        # a fraction above 1 can never be exceeded: this fit is plain RANSAC
+        moving = fit_sensor_velocity(directions, radial_velocity_mps, static_fraction=1.0,
+                                     **common)  # fmt: skip
+        if (
+            moving.valid
+            and moving.speed_mps >= cfg.static_speed_mps
+            and moving.num_inliers >= fit.num_inliers
+        ):
+            fit = moving  # the slow points were broadside targets of a moving sensor
     if not fit.valid:
         keep = np.zeros(n, bool) if cfg.drop_sweep_on_failure else np.ones(n, bool)
         return keep, False, False

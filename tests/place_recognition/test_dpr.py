@@ -77,3 +77,20 @@ def test_dpr_config_validation(bad):
 
     with pytest.raises(ConfigError):
         build_config(DPRConfig, bad)
+
+
+def test_side_radar_of_moving_car_is_not_static():
+    """A side radar moving along its y axis sees broadside static points at |v_r| < 1 m/s: the
+    one-radar static-ego rule trips; verification by the slow points' speed overrules it."""
+    rng = np.random.default_rng(5)
+    az = np.r_[rng.uniform(-0.05, 0.05, 40), rng.uniform(0.3, 1.0, 15), rng.uniform(-1.0, -0.3, 15)]
+    r = rng.uniform(5, 60, len(az))
+    pts = np.zeros(len(az), RADAR_DTYPE)
+    pts["x"], pts["y"] = r * np.cos(az), r * np.sin(az)
+    pts["vx"], pts["vy"] = 0.0, -10.0  # static world seen from a sensor moving at (0, 10)
+    pts["ambig_state"] = 3
+    sweep = RadarSweep("RADAR_FRONT_LEFT", 0, pts, np.eye(4), np.eye(4))
+    verified = DynamicPointsRemoval(DPRConfig())(sweep)
+    assert verified.all()
+    paper = DynamicPointsRemoval(DPRConfig(verify_static_ego=False))(sweep)
+    assert paper[:40].all() and not paper[40:].any()  # the unverified rule drops 30 static points
