@@ -8,10 +8,12 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from radarslam.errors import ConfigError
+from radarslam.types import RADAR_DTYPE
 
 
 def _states(name: str, values: Iterable[int] | None) -> frozenset[int] | None:
@@ -27,6 +29,16 @@ def _states(name: str, values: Iterable[int] | None) -> frozenset[int] | None:
             raise ConfigError(f"RadarPointFilter.{name}: state {v} does not fit the int8 field")
         out.add(int(v))
     return frozenset(out)
+
+
+_OFFSET = {name: RADAR_DTYPE.fields[name][1] for name in RADAR_DTYPE.names}
+
+
+def _bytes_view(points: np.ndarray) -> np.ndarray | None:
+    """(N, 43) uint8 view of contiguous RADAR_DTYPE records, else None."""
+    if points.dtype != RADAR_DTYPE or not points.flags.c_contiguous or points.ndim != 1:
+        return None
+    return points.view(np.uint8).reshape(len(points), RADAR_DTYPE.itemsize)
 
 
 @dataclass(frozen=True)
@@ -63,18 +75,31 @@ class RadarPointFilter:
             and self.ambig_states is None
         )
 
-    def mask(self, points: np.ndarray) -> np.ndarray:
-        """Boolean mask of the points (structured, RADAR_DTYPE fields) that pass the filter."""
-        keep = np.ones(len(points), dtype=bool)
-        for field, allowed in (
+    @cached_property
+    def _tables(self) -> tuple[tuple[str, np.ndarray], ...]:
+        # 256-entry lookup tables indexed by the state byte (int8 read as uint8): one gather per
+        # field instead of np.isin, several times faster on 125-point sweeps
+        out = []
+        for field_name, allowed in (
             ("invalid_state", self.invalid_states),
             ("dyn_prop", self.dynprop_states),
             ("ambig_state", self.ambig_states),
         ):
             if allowed is not None:
-                keep &= np.isin(
-                    points[field], np.fromiter(allowed, dtype=np.int64, count=len(allowed))
-                )
+                lut = np.zeros(256, dtype=bool)
+                lut[np.fromiter(allowed, dtype=np.int64, count=len(allowed)) & 0xFF] = True
+                out.append((field_name, lut))
+        return tuple(out)
+
+    def mask(self, points: np.ndarray) -> np.ndarray:
+        """Boolean mask of the points (structured, RADAR_DTYPE fields) that pass the filter."""
+        keep = np.ones(len(points), dtype=bool)
+        raw = _bytes_view(points)
+        for field_name, lut in self._tables:
+            if raw is not None:
+                keep &= lut[raw[:, _OFFSET[field_name]]]
+            else:
+                keep &= lut[points[field_name].astype(np.uint8)]
         return keep
 
     def apply(self, points: np.ndarray) -> np.ndarray:
@@ -82,7 +107,13 @@ class RadarPointFilter:
         if self.is_noop:
             return points
         keep = self.mask(points)
-        return points if keep.all() else points[keep]
+        if keep.all():
+            return points
+        raw = _bytes_view(points)
+        if raw is None:
+            return points[keep]
+        # row gather on the byte view: a memcpy per record instead of a per-field copy
+        return raw[keep].view(RADAR_DTYPE).reshape(-1)
 
     def describe(self) -> str:
         def fmt(s):

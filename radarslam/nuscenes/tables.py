@@ -3,10 +3,11 @@
 Only ``scene``, ``sample``, ``sample_data``, ``ego_pose``, ``calibrated_sensor``, ``sensor`` and
 ``log`` are read. The small ones are parsed with :mod:`json`. ``sample_data.json`` and
 ``ego_pose.json`` of ``v1.0-trainval`` hold millions of records (cameras and lidar too, about 1 GB
-of text), so they are streamed in chunks: each flat ``{...}`` record is located with a regular
-expression, records of other sensors are skipped without being decoded, and only the radar
-``sample_data`` and their ego poses are kept, as numpy arrays (:class:`RadarIndex`). Tokens are
-looked up through sorted arrays (:class:`TokenIndex`): 32 bytes per record instead of a dict entry.
+of text), so they are streamed in 8 MB windows: the list structure is checked with C-level counts,
+radar records are found by a regular expression on their ``filename`` (cameras and lidar are never
+decoded), the radar records of a window are decoded in one :func:`json.loads` call, and only the
+radar ``sample_data`` and their ego poses are kept, as numpy arrays (:class:`RadarIndex`). Tokens
+are looked up through sorted arrays (:class:`TokenIndex`): 32 bytes a record, not a dict entry.
 
 The compact radar index can be cached on disk (``~/.cache/radarslam/nuscenes`` by default,
 ``$XDG_CACHE_HOME/radarslam/nuscenes``, or ``cache_dir``), keyed by the size and mtime of every
@@ -48,8 +49,10 @@ TABLE_NAMES: tuple[str, ...] = (
     "log",
 )
 _CACHE_FORMAT = 1
-_CHUNK_BYTES = 32 << 20
-_RECORD_RE = re.compile(rb"\{[^{}]*\}")
+_CHUNK_BYTES = 8 << 20  # streaming window: bounds the transient memory
+_SEP_RE = re.compile(rb"\}\s*,\s*\{")
+# the filename of a radar sample_data names its channel folder ("samples/RADAR_FRONT/...")
+_RADAR_FILENAME_RE = re.compile(rb'"filename"\s*:\s*"[^"]*RADAR_')
 _TOKEN_RE = re.compile(rb'"token"\s*:\s*"([^"]*)"')
 _WS = b" \t\r\n"
 
@@ -197,11 +200,12 @@ def _floats(path: Path, rec: dict, key: str, n: int) -> list[float]:
     return value
 
 
-def _iter_records(path: Path) -> Iterator[tuple[bytes, int]]:
-    """Yield (raw bytes, byte offset) of each flat ``{...}`` record of a JSON list, streaming.
+def _iter_chunks(path: Path) -> Iterator[tuple[bytes, int]]:
+    """Yield (body, byte offset) pieces of a JSON list of flat ``{...}`` records, streaming.
 
-    Checks the list structure (``[``, records separated by exactly one comma, ``]``) but decodes
-    nothing: the caller decides which records are worth :func:`json.loads`.
+    Each body holds whole records and their separators. The list structure (``[``, records
+    separated by exactly one comma, ``]``) is checked in bulk with C-speed regex/bytes operations;
+    nothing is decoded: callers pick the records worth :func:`json.loads`.
     """
     try:
         fh = path.open("rb")
@@ -213,53 +217,98 @@ def _iter_records(path: Path) -> Iterator[tuple[bytes, int]]:
         carry = b""
         base = 0  # file offset of carry[0]
         started = False
-        finished = False
         while True:
             chunk = fh.read(_CHUNK_BYTES)
-            buf = carry + chunk if carry else chunk
             if not chunk:
                 break
+            buf = carry + chunk if carry else chunk
             last = buf.rfind(b"}")
             if last < 0:
                 carry = buf
                 continue
             body = buf[: last + 1]
-            pos = 0
-            for m in _RECORD_RE.finditer(body):
-                gap = body[pos : m.start()]
-                if not started:
-                    g = gap.strip(_WS)
-                    if g[:1] != b"[" or g[1:].strip(_WS):
-                        raise DataError(
-                            f"{path}: corrupt JSON (expected '[' before the first record, "
-                            f"byte {base + pos})"
-                        )
-                    started = True
-                elif gap.count(b",") != 1 or gap.strip(_WS + b","):
-                    raise DataError(
-                        f"{path}: corrupt JSON (unexpected {gap.strip(_WS)[:20]!r} between "
-                        f"records near byte {base + pos})"
-                    )
-                yield m.group(), base + m.start()
-                pos = m.end()
-            if pos <= last:  # a '}' the record pattern did not match: nested object or junk
-                raise DataError(
-                    f"{path}: corrupt JSON (unbalanced braces or nested object near byte "
-                    f"{base + pos})"
-                )
+            _check_structure(path, body, base, started)
+            started = True
+            yield body, base
             carry = buf[last + 1 :]
             base += last + 1
-        tail = carry.strip(_WS)
-        if not started:
-            if tail.replace(b" ", b"") in (b"[]",) or re.fullmatch(rb"\[\s*\]", tail):
-                finished = True
-            else:
-                raise DataError(f"{path}: corrupt JSON (not a list of records)")
-        elif tail == b"]":
-            finished = True
-        if not finished:
-            what = "truncated" if b"]" not in tail else f"unexpected {tail[:20]!r} at the end"
+        tail = carry.translate(None, _WS)
+        if tail != (b"]" if started else b"[]"):
+            what = (
+                "truncated" if not tail.endswith(b"]") else f"unexpected {tail[:20]!r} at the end"
+            )
             raise DataError(f"{path}: corrupt JSON ({what}, after byte {base})")
+
+
+def _check_structure(path: Path, body: bytes, base: int, started: bool) -> None:
+    """A list of flat records: '[' (or ',' after a previous chunk), then records separated by
+    exactly one comma. Done with C-speed counts, no per-record Python work."""
+    n = body.count(b"{")
+    if n == 0 or body.count(b"}") != n:
+        raise DataError(
+            f"{path}: corrupt JSON (unbalanced braces between bytes {base} and {base + len(body)})"
+        )
+    head = body[: body.find(b"{")].translate(None, _WS)
+    if head != (b"," if started else b"["):
+        what = "expected '[' at the start of the list" if not started else f"unexpected {head!r}"
+        raise DataError(f"{path}: corrupt JSON ({what}, near byte {base})")
+    seps = sum(1 for _ in _SEP_RE.finditer(body))
+    if seps != n - 1:
+        raise DataError(
+            f"{path}: corrupt JSON (records between bytes {base} and {base + len(body)} are not "
+            f"flat objects separated by single commas)"
+        )
+
+
+def _radar_batches(path: Path) -> Iterator[list[tuple[bytes, int]]]:
+    """Per chunk, the (raw bytes, offset) of the records whose filename names a radar channel.
+    The search runs in C over the other records (cameras, lidar), which are never decoded."""
+    for body, base in _iter_chunks(path):
+        pieces = []
+        for m in _RADAR_FILENAME_RE.finditer(body):
+            start = body.rfind(b"{", 0, m.start())
+            end = body.find(b"}", m.end()) + 1
+            pieces.append((body[start:end], base + start))
+        if pieces:
+            yield pieces
+
+
+def _loads_many(path: Path, pieces: list[tuple[bytes, int]]) -> list[dict]:
+    """Decode many records in one C call; on failure, find the bad one for the message."""
+    try:
+        return json.loads(b"[" + b",".join(raw for raw, _ in pieces) + b"]")
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        for raw, offset in pieces:
+            _loads(path, raw, offset)
+        raise DataError(f"{path}: corrupt JSON") from None
+
+
+def _text_array(path: Path, values: list, what: str, utf8: bool = False) -> np.ndarray:
+    if not all(type(v) is str for v in values):
+        bad = next(v for v in values if type(v) is not str)
+        raise DataError(f"{path}: a radar record has {what} {bad!r}, expected a string")
+    if not values:
+        return np.zeros(0, dtype="S1")
+    if utf8:
+        return np.array([v.encode("utf-8") for v in values], dtype=bytes)
+    try:
+        return np.array(values, dtype=bytes)  # ASCII tokens
+    except UnicodeEncodeError:
+        raise DataError(f"{path}: a radar record has a non-ASCII {what}") from None
+
+
+def _number_block(path: Path, recs: list[dict], key: str, n: int) -> np.ndarray:
+    """(len(recs), n) float array of one list-valued field, validated in bulk."""
+    try:
+        values = [r[key] for r in recs]
+        arr = np.array(values, dtype=np.float64)
+        if arr.shape == (len(recs), n) and all(type(v) is list for v in values):
+            return arr
+    except (KeyError, TypeError, ValueError):
+        pass
+    for r in recs:  # slow path: name the bad record
+        _floats(path, r, key, n)
+    raise DataError(f"{path}: field {key!r} is malformed")
 
 
 def _loads(path: Path, raw: bytes, offset: int) -> dict:
@@ -506,55 +555,62 @@ class NuScenesTables:
         p_ego = self.path("ego_pose")
         cs_radar = {t: i for i, t in enumerate(small.cs_token) if small.cs_channel[i] >= 0}
 
-        tok, prev, nxt, ego, fname = [], [], [], [], []
-        sample_rows, cs_rows, stamps, keyf = [], [], [], []
-        for raw, offset in _iter_records(p_sd):
-            if b"RADAR_" not in raw:  # cameras and lidar: never decoded
-                continue
-            rec = _loads(p_sd, raw, offset)
-            cs_tok = _field(p_sd, rec, "calibrated_sensor_token")
-            cs_i = cs_radar.get(cs_tok)
-            if cs_i is None:
-                if cs_tok not in small.cs_row:
-                    raise DataError(
-                        f"{p_sd}: record {rec.get('token')!r} calibrated_sensor_token {cs_tok!r} "
-                        f"is not in calibrated_sensor.json"
-                    )
-                continue  # not a radar (a camera file named after a radar?)
-            s_tok = _field(p_sd, rec, "sample_token")
-            s_i = small.sample_row.get(s_tok)
-            if s_i is None:
-                raise DataError(
-                    f"{p_sd}: record {rec.get('token')!r} sample_token {s_tok!r} "
-                    "is not in sample.json"
-                )
-            ts = _field(p_sd, rec, "timestamp")
-            if not isinstance(ts, int) or isinstance(ts, bool):
-                raise DataError(
-                    f"{p_sd}: record {rec.get('token')!r} timestamp {ts!r} is not an int"
-                )
+        cols: dict[str, list] = {k: [] for k in ("token", "prev", "next", "ego", "filename")}
+        sample_rows: list[int] = []
+        cs_rows: list[int] = []
+        stamps: list[int] = []
+        keyf: list[bool] = []
+        for pieces in _radar_batches(p_sd):
+            recs = _loads_many(p_sd, pieces)
+            got = {k: [] for k in cols}
+            rec: dict = {}
             try:
-                tok.append(_field(p_sd, rec, "token").encode("ascii"))
-                prev.append(_field(p_sd, rec, "prev").encode("ascii"))
-                nxt.append(_field(p_sd, rec, "next").encode("ascii"))
-                ego.append(_field(p_sd, rec, "ego_pose_token").encode("ascii"))
-                fname.append(_field(p_sd, rec, "filename").encode("utf-8"))
-            except (AttributeError, UnicodeEncodeError):
+                for rec in recs:
+                    cs_tok = rec["calibrated_sensor_token"]
+                    cs_i = cs_radar.get(cs_tok)
+                    if cs_i is None:
+                        if cs_tok not in small.cs_row:
+                            raise DataError(
+                                f"{p_sd}: record {rec.get('token')!r} calibrated_sensor_token "
+                                f"{cs_tok!r} is not in calibrated_sensor.json"
+                            )
+                        continue  # not a radar (a camera file named after a radar?)
+                    s_i = small.sample_row.get(rec["sample_token"])
+                    if s_i is None:
+                        raise DataError(
+                            f"{p_sd}: record {rec.get('token')!r} sample_token "
+                            f"{rec['sample_token']!r} is not in sample.json"
+                        )
+                    ts = rec["timestamp"]
+                    if type(ts) is not int:
+                        raise DataError(
+                            f"{p_sd}: record {rec.get('token')!r} timestamp {ts!r} is not an int"
+                        )
+                    got["token"].append(rec["token"])
+                    got["prev"].append(rec["prev"])
+                    got["next"].append(rec["next"])
+                    got["ego"].append(rec["ego_pose_token"])
+                    got["filename"].append(rec["filename"])
+                    sample_rows.append(s_i)
+                    cs_rows.append(cs_i)
+                    stamps.append(ts)
+                    keyf.append(bool(rec["is_key_frame"]))
+            except KeyError as exc:
                 raise DataError(
-                    f"{p_sd}: record {rec.get('token')!r} has a non-ASCII or non-string token"
+                    f"{p_sd}: record {rec.get('token')!r} has no {exc.args[0]!r} field"
                 ) from None
-            sample_rows.append(s_i)
-            cs_rows.append(cs_i)
-            stamps.append(ts)
-            keyf.append(bool(_field(p_sd, rec, "is_key_frame")))
+            for k, values in got.items():
+                cols[k].append(_text_array(p_sd, values, k, utf8=k == "filename"))
 
-        n = len(tok)
-        token = _bytes_array(tok)
-        del tok
+        def joined(k: str) -> np.ndarray:
+            parts = cols.pop(k)
+            return np.concatenate(parts) if parts else np.zeros(0, dtype="S1")
+
+        token = joined("token")
+        n = len(token)
         tindex = TokenIndex(token, what=str(p_sd))
 
-        def chain(links: list[bytes], which: str) -> np.ndarray:
-            arr = _bytes_array(links)
+        def chain(arr: np.ndarray, which: str) -> np.ndarray:
             rows = tindex.find_many(arr)
             bad = (rows < 0) & (arr != b"")
             if bad.any():
@@ -565,44 +621,42 @@ class NuScenesTables:
                 )
             return rows.astype(np.int32)
 
-        prev_rows = chain(prev, "prev")
-        next_rows = chain(nxt, "next")
-        del prev, nxt
+        prev_rows = chain(joined("prev"), "prev")
+        next_rows = chain(joined("next"), "next")
+        ego_tok = joined("ego")
+        filename = joined("filename")
 
-        ego_tok = _bytes_array(ego)
-        del ego
         # One ego pose per sample_data in nuScenes, but tolerate sharing.
         uniq, inverse = np.unique(ego_tok, return_inverse=True)
+        del ego_tok
         uindex = TokenIndex(uniq, what=str(p_ego))
         u_t = np.full((len(uniq), 3), np.nan)
         u_q = np.full((len(uniq), 4), np.nan)
         found = np.zeros(len(uniq), dtype=bool)
-        pending_raw: list[tuple[bytes, int]] = []
-        pending_tok: list[bytes] = []
-
-        def flush() -> None:
-            if not pending_tok:
-                return
-            rows = uindex.find_many(_bytes_array(pending_tok))
-            for (raw, offset), r in zip(pending_raw, rows, strict=True):
-                if r < 0:
-                    continue
-                rec = _loads(p_ego, raw, offset)
-                u_t[r] = _floats(p_ego, rec, "translation", 3)
-                u_q[r] = _floats(p_ego, rec, "rotation", 4)
-                found[r] = True
-            pending_raw.clear()
-            pending_tok.clear()
-
-        for raw, offset in _iter_records(p_ego):
-            m = _TOKEN_RE.search(raw)
-            if m is None:
-                raise DataError(f"{p_ego}: the record at byte {offset} has no 'token' field")
-            pending_raw.append((raw, offset))
-            pending_tok.append(m.group(1))
-            if len(pending_tok) >= 65536:
-                flush()
-        flush()
+        for body, base in _iter_chunks(p_ego):
+            # tokens of every record in C; decode only the records a radar sweep needs
+            toks = _TOKEN_RE.findall(body)
+            if len(toks) != body.count(b"{"):
+                raise DataError(
+                    f"{p_ego}: a record between bytes {base} and {base + len(body)} has no "
+                    f"'token' field (or more than one)"
+                )
+            rows = uindex.find_many(_bytes_array(toks))
+            hits = np.flatnonzero(rows >= 0)
+            if len(hits) == 0:
+                continue
+            pieces = []
+            pos = 0
+            for i in hits:  # in file order: each search starts where the previous one ended
+                at = body.find(b'"' + toks[i] + b'"', pos)
+                start = body.rfind(b"{", 0, at)
+                pos = body.find(b"}", at) + 1
+                pieces.append((body[start:pos], base + start))
+            recs = _loads_many(p_ego, pieces)
+            r = rows[hits]
+            u_t[r] = _number_block(p_ego, recs, "translation", 3)
+            u_q[r] = _number_block(p_ego, recs, "rotation", 4)
+            found[r] = True
         if not found.all():
             missing = uniq[~found][0].decode()
             raise DataError(
@@ -616,16 +670,15 @@ class NuScenesTables:
             )
         if n:
             log.debug("indexed %d radar sample_data records of %s", n, self.table_dir)
+        cs_arr = np.asarray(cs_rows, dtype=np.int32)
         return RadarIndex(
             token=token,
             sample=np.asarray(sample_rows, dtype=np.int32),
-            calibrated_sensor=np.asarray(cs_rows, dtype=np.int32),
-            channel=small.cs_channel[np.asarray(cs_rows, dtype=np.int64)].astype(np.int8)
-            if n
-            else np.zeros(0, dtype=np.int8),
+            calibrated_sensor=cs_arr,
+            channel=small.cs_channel[cs_arr.astype(np.int64)].astype(np.int8),
             timestamp_us=np.asarray(stamps, dtype=np.int64),
             is_key_frame=np.asarray(keyf, dtype=bool),
-            filename=_bytes_array(fname),
+            filename=filename,
             prev=prev_rows,
             next=next_rows,
             ego_translation=u_t[inverse].reshape(n, 3),
