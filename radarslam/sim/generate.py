@@ -21,9 +21,15 @@ from radarslam.io.atomic import write_json_atomic, write_text_atomic
 from radarslam.nuscenes.pcd import pcd_bytes
 from radarslam.sim.config import SimConfig, load_sim_config
 from radarslam.sim.ego import TumEgo, canonical_routes, extend_route, read_tum
-from radarslam.sim.radar import NUSCENES_MOUNTS, RadarModel, SweepWorld
+from radarslam.sim.radar import NUSCENES_MOUNTS, RadarModel, SweepWorld, box_scatterers
 from radarslam.sim.traffic import EgoMotion, simulate_traffic
-from radarslam.sim.world import Boxes, StaticWorld, build_world, drivable_mask, parked_cars
+from radarslam.sim.world import (
+    Scatterers,
+    StaticWorld,
+    build_world,
+    drivable_mask,
+    parked_cars,
+)
 from radarslam.sim.writer import (
     add_days,
     calibrated_sensor_record,
@@ -216,8 +222,8 @@ def _in_window(windows, t: float, log: int) -> bool:
     return any(w.start_s <= t < w.end_s and (w.log is None or w.log == log) for w in windows)
 
 
-def _preselect(world: StaticWorld, lo: np.ndarray, hi: np.ndarray):
-    sc = world.scatterers
+def _preselect(world: StaticWorld, lo, hi, extra_sc: Scatterers, extra_occ: np.ndarray):
+    sc = Scatterers.concat([world.scatterers, extra_sc])
     m = np.all((sc.xy >= lo) & (sc.xy <= hi), axis=1)
 
     def segs(s):
@@ -225,7 +231,8 @@ def _preselect(world: StaticWorld, lo: np.ndarray, hi: np.ndarray):
         b = np.maximum(s[:, :2], s[:, 2:])
         return s[np.all((b >= lo) & (a <= hi), axis=1)]
 
-    return sc.subset(m), segs(world.occluders), segs(world.reflectors)
+    occ = np.vstack([world.occluders, extra_occ])
+    return sc.subset(m), segs(occ), segs(world.reflectors)
 
 
 def _sensor_states(ego: EgoMotion, mounts_xy: np.ndarray, mount_yaw: float):
@@ -304,6 +311,9 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
         )
         ego_fn = traffic.ego
     parked = parked_cars(world, plan.day, seed)
+    # Parked cars are static for the whole log: their scatterers join the static world once.
+    car_rng = np.random.default_rng([seed, 707, plan.day])
+    parked_sc, _, _, parked_occ = box_scatterers(parked, car_rng)
     model = RadarModel(cfg.radar)
 
     # Sweep clocks: every radar its own period, phase and jitter.
@@ -372,8 +382,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
         t_grid = np.linspace(ts, te, 41)
         path_xy = ego_fn(t_grid).xy
         lo, hi = path_xy.min(0) - far, path_xy.max(0) + far
-        static, occ, refl = _preselect(world, lo, hi)
-        pk = parked.subset(np.all((parked.xy >= lo) & (parked.xy <= hi), axis=1))
+        static, occ, refl = _preselect(world, lo, hi, parked_sc, parked_occ)
         for m in mounts:
             ch = m.channel
             t_all = clocks[ch]
@@ -403,13 +412,17 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 make_token(seed, "sample_data", plan.index, j, ch, k) for k in range(len(t_sw))
             ]
             key_idx = sorted(key_of)
+            chunk = 13  # ~1 s of sweeps share one pre-culled view of the static world
             for k, t in enumerate(t_sw):
+                if k % chunk == 0:
+                    mid = min(k + chunk // 2, len(t_sw) - 1)
+                    view = model.chunk_view(static, occ, refl, sxy[mid], float(syaw[mid]))
                 ts_us = plan.start_us + round(t * 1e6)
-                boxes = Boxes.concat([traffic.boxes(float(t)), pk])
+                boxes = traffic.boxes(float(t))
                 if _in_window(cfg.scenario.empty_windows, float(t), plan.index):
                     pts = np.zeros(0, dtype=RADAR_DTYPE)
                 else:
-                    sw = SweepWorld(static, occ, refl, boxes)
+                    sw = SweepWorld(*view, boxes)
                     pts = model.sweep(sw, sxy[k], float(syaw[k]), v_s[k], rng)
                 is_key = k in key_of
                 if is_key:

@@ -232,6 +232,36 @@ class RadarModel:
         t = np.clip((np.abs(np.rad2deg(az)) - 40.0) / max(cfg.near_fov_deg - 40.0, 1e-6), 0, 1)
         return cfg.near_range_m - (cfg.near_range_m - cfg.near_edge_range_m) * t
 
+    def chunk_view(
+        self, static: Scatterers, occ: np.ndarray, refl: np.ndarray, sensor_xy, sensor_yaw: float
+    ) -> tuple[Scatterers, np.ndarray, np.ndarray]:
+        """What a sensor near ``sensor_xy`` / ``sensor_yaw`` can possibly see within ~1 s.
+
+        A relaxed field of view (margins for up to ~15 m of travel and ~35 deg of turn) computed
+        once per chunk of sweeps, so each sweep works on a small sector instead of the city.
+        """
+        cfg = self.cfg
+        c, s = np.cos(sensor_yaw), np.sin(sensor_yaw)
+        rot = np.array([[c, s], [-s, c]])
+        near_lim = np.deg2rad(cfg.near_fov_deg + 35.0)
+        far_lim = np.deg2rad(cfg.far_fov_deg + 35.0)
+
+        def keep(xy):
+            p = (xy - sensor_xy) @ rot.T
+            r = np.hypot(p[:, 0], p[:, 1])
+            a = np.abs(np.arctan2(p[:, 1], p[:, 0]))
+            return (r < 30.0) | ((a < near_lim) & (r < cfg.near_range_m + 20.0)) | (
+                (a < far_lim) & (r < cfg.far_range_m + 20.0)
+            )
+
+        def keep_seg(sg):
+            if len(sg) == 0:
+                return sg
+            m = keep(sg[:, :2]) | keep(sg[:, 2:]) | keep(0.5 * (sg[:, :2] + sg[:, 2:]))
+            return sg[m]
+
+        return static.subset(keep(static.xy)), keep_seg(occ), keep_seg(refl)
+
     # --- one sweep ---------------------------------------------------------------------------
     def sweep(
         self,
@@ -250,8 +280,14 @@ class RadarModel:
 
         near_boxes = world.boxes
         if len(near_boxes):
-            dist = np.linalg.norm(near_boxes.xy - sensor_xy, axis=1)
-            near_boxes = near_boxes.subset(dist < cfg.far_range_m + 15.0)
+            rb = (near_boxes.xy - sensor_xy) @ rot.T
+            dist = np.hypot(rb[:, 0], rb[:, 1])
+            azb = np.abs(np.arctan2(rb[:, 1], rb[:, 0]))
+            near_boxes = near_boxes.subset(
+                (dist < 15.0)
+                | ((azb < np.deg2rad(cfg.near_fov_deg + 15.0)) & (dist < cfg.near_range_m + 10.0))
+                | ((azb < np.deg2rad(cfg.far_fov_deg + 8.0)) & (dist < cfg.far_range_m + 10.0))
+            )
         box_sc, box_vel, box_stop, box_occ = box_scatterers(near_boxes, rng)
         sc = Scatterers.concat([world.static, box_sc])
         n_static = len(world.static)
