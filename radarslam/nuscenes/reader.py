@@ -41,7 +41,8 @@ NOMINAL_PERIOD_US = 76_923
 
 @dataclass
 class SkipCounts:
-    """What the reader skipped instead of failing (totals, and per scene name)."""
+    """What the reader skipped instead of failing (totals, and per scene name), each sweep counted
+    once however often it is read."""
 
     nan_points: int = 0  # points dropped because a float field was NaN/inf
     empty_sweeps: int = 0  # sweeps with no finite point (yielded with 0 points)
@@ -94,6 +95,8 @@ class NuScenesRadar:
         self._groups: tuple[np.ndarray, np.ndarray] | None = None
         self._keyframes: dict[int, dict[int, int]] | None = None
         self._scene_infos: list[SceneInfo] | None = None
+        self._reported: set[str] = set()
+        self._skipped_rows: set[int] = set()
 
     # ---- scenes ------------------------------------------------------------------------------
     def scenes(self) -> list[SceneInfo]:
@@ -245,7 +248,8 @@ class NuScenesRadar:
                 nan_dropped = int((~finite).sum())
                 points = points[finite]
                 empty = len(points) == 0
-        if nan_dropped or empty:
+        if (nan_dropped or empty) and row not in self._skipped_rows:
+            self._skipped_rows.add(row)  # counted once per sweep, however often it is read
             if scene_name is None:
                 small = tables.small
                 scene_name = small.scenes[small.sample_scene[radar.sample[row]]]["name"]
@@ -290,7 +294,12 @@ class NuScenesRadar:
         d_nan = now["nan_points"] - before["nan_points"]
         d_empty = now["empty_sweeps"] - before["empty_sweeps"]
         if d_nan or d_empty:
-            log.warning(
+            # a warning the first time a scene shows skips, then debug: stats and multi-channel
+            # passes would otherwise repeat it once per radar
+            first = scene_name not in self._reported
+            self._reported.add(scene_name)
+            log.log(
+                logging.WARNING if first else logging.DEBUG,
                 "scene %s: %d empty sweep(s) yielded with 0 points, %d point(s) with NaN fields "
                 "dropped",
                 scene_name,

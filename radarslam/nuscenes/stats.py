@@ -69,8 +69,8 @@ class DatasetStats:
     redetect_next: float = float("nan")
     redetect_within_3: float = float("nan")
     redetect_sources: int = 0  # static points that had a next sweep to look in
-    empty_sweeps: int = 0
-    nan_points: int = 0
+    empty_sweeps: int = 0  # sweeps read with no (finite) point
+    nan_points: int = 0  # points with NaN fields dropped by the reader in these scenes
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -208,7 +208,6 @@ def dataset_statistics(
     default = RadarPointFilter.devkit_default()
     none = RadarPointFilter.none()
     infos = [reader.scene(s) for s in scenes] if scenes else reader.scenes()
-    skips0 = (reader.skip_counts.empty_sweeps, reader.skip_counts.nan_points)
     counts, counts_f = [], []
     ranges, rcs, dyn, inval, ambig = [], [], [], [], []
     moving, tangential, oracle = [], [], []
@@ -251,8 +250,11 @@ def dataset_statistics(
     st = DatasetStats(dataroot=str(reader.dataroot), version=reader.version, num_scenes=len(infos))
     st.num_sweeps = len(counts)
     st.num_points = int(sum(counts))
-    st.empty_sweeps = reader.skip_counts.empty_sweeps - skips0[0]
-    st.nan_points = reader.skip_counts.nan_points - skips0[1]
+    st.empty_sweeps = sum(1 for c in counts if c == 0)
+    # NaN points are dropped inside the reader; its per-scene counts cover each sweep once
+    st.nan_points = sum(
+        reader.skip_counts.per_scene.get(i.name, {}).get("nan_points", 0) for i in infos
+    )
     if counts:
         st.points_per_sweep_mean = float(np.mean(counts))
         st.points_per_sweep_min, st.points_per_sweep_max = int(min(counts)), int(max(counts))

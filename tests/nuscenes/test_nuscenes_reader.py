@@ -252,6 +252,7 @@ def test_accumulate_errors(mini, reader):
 def test_empty_sweeps_and_nan_points_are_counted(mini, reader, caplog):
     with caplog.at_level(logging.WARNING, logger="radarslam.nuscenes"):
         frames = list(reader.iter_frames("scene-0002"))
+        list(reader.iter_sweeps("scene-0002", "RADAR_BACK_LEFT"))  # again: counted, not re-warned
     assert reader.skip_counts.empty_sweeps == 2 and reader.skip_counts.nan_points == 3
     assert reader.skip_counts.per_scene == {"scene-0002": {"nan_points": 3, "empty_sweeps": 2}}
     assert (
