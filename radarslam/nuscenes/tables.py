@@ -352,8 +352,13 @@ class NuScenesTables:
         self.table_dir = self.dataroot / version
         if not self.table_dir.is_dir():
             present = sorted(p.name for p in self.dataroot.glob("v1.0-*") if p.is_dir())
+            hint = (
+                "; pass the folder above it as the dataroot"
+                if self.dataroot.name in VERSIONS or (self.dataroot / "scene.json").is_file()
+                else ""
+            )
             raise DataError(
-                f"{self.table_dir}: version folder is missing (present: {present or 'none'})"
+                f"{self.table_dir}: version folder is missing (present: {present or 'none'})" + hint
             )
         for name in TABLE_NAMES:
             if not (self.table_dir / f"{name}.json").is_file():

@@ -109,6 +109,8 @@ def test_missing_dataroot_and_version(mini, tmp_path):
         NuScenesTables(mini.dataroot, "v2.0")
     with pytest.raises(DataError, match=r"v1.0-trainval: version folder is missing \(present"):
         NuScenesTables(mini.dataroot, "v1.0-trainval")
+    with pytest.raises(DataError, match="pass the folder above it as the dataroot"):
+        NuScenesTables(mini.dataroot / VERSION, VERSION)
 
 
 def test_missing_table(clone):
