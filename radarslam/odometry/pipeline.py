@@ -22,7 +22,9 @@ Per frame (the five radars' sweeps nearest in time, :class:`~radarslam.types.Rad
    innovation rejects registrations that disagree with the prediction (ICP falls into a wrong
    minimum, moving objects dominate), in which case the frame keeps the Doppler pose; after
    ``max_consecutive_rejections`` rejections in a row the registration is accepted again
-   (re-localisation in the map). Frames with too few points skip registration.
+   (re-localisation in the map). Frames with too few points skip registration, and so do frames
+   where the vehicle is stopped (static-ego rule and a twist indistinguishable from 0, at this
+   frame and the previous one): the pose is held exactly (zero-velocity update).
 6. The frame's points are inserted in the map at the fused pose.
 
 Relative motion and covariance for the back end. For consecutive frames, and from key frame to key
@@ -73,7 +75,7 @@ class OdometryResult:
     doppler: EgoMotionFit
     registration: RegistrationResult | None  # None when registration was skipped
     icp_accepted: bool
-    status: str  # "first" | "fused" | "icp" | "rejected" | "skipped" | "doppler"
+    status: str  # "first" | "fused" | "icp" | "rejected" | "skipped" | "stopped" | "doppler"
     num_points: int  # points that entered registration (dynamic-free, in range)
     timing: FrameTiming
     ground_truth: np.ndarray  # the frame's world_from_ego from the dataset
@@ -127,8 +129,9 @@ def _fuse_cov(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
-#: chi-square, 3 dof, 99 %: a static-rule twist closer than this to 0 is taken as exactly 0.
-_ZERO_VELOCITY_CHI2 = 11.34
+#: chi-square, 3 dof, 99.9 %: a static-rule twist closer than this to 0 is taken as exactly 0
+#: (at 99 % one stopped frame in a hundred would integrate its noise).
+_ZERO_VELOCITY_CHI2 = 16.27
 
 
 def _chi2(x: np.ndarray, cov: np.ndarray) -> float:
@@ -276,7 +279,11 @@ class RadarOdometry:
         accepted = False
         icp_cov = None
         reg = self._registration
-        if reg is not None and len(points):
+        if not first and stopped and self._stopped:
+            # Stopped at both ends (zero-velocity update): the pose is held. Registering would
+            # only feed the registration's jitter back into the map, letting both wander.
+            status = "stopped"
+        elif reg is not None and len(points):
             source, frame_down = reg.voxelize(points)
             predicted = pose
             if not first and not reg.empty and len(source) >= cfg.registration.min_source_points:
