@@ -8,7 +8,8 @@
    cache, beside the peer ``json.load`` of ``sample_data.json`` + ``ego_pose.json`` (what the
    devkit's ``NuScenes`` does at start-up).
 
-Usage: ``python bench/reader.py [--records 1500000] [--files 400] [--workdir DIR] [--keep]``
+Usage: ``python bench/reader.py [--records 1500000] [--files 400] [--workdir DIR]
+[--reuse-tables] [--no-json-peer]``
 """
 
 from __future__ import annotations
@@ -268,10 +269,17 @@ def _child(code: str, *args: str) -> list[str]:
     return out.stdout.split()
 
 
-def bench_startup(workdir: Path, n_records: int, with_json_peer: bool) -> list[tuple]:
+def bench_startup(
+    workdir: Path, n_records: int, with_json_peer: bool, reuse: bool = False
+) -> list[tuple]:
     root = workdir / "fake_nuscenes"
     t0 = time.perf_counter()
-    info = write_fake_tables(root, n_records)
+    meta = root / "tables.json"
+    if reuse and meta.is_file() and json.loads(meta.read_text())["requested"] == n_records:
+        info = json.loads(meta.read_text())
+    else:
+        info = write_fake_tables(root, n_records)
+        meta.write_text(json.dumps({**info, "requested": n_records}))
     t_write = time.perf_counter() - t0
     print(
         f"wrote {info['sample_data']:,} sample_data records ({info['radar']:,} radar, "
@@ -311,6 +319,9 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--keep", action="store_true", help="keep the generated files")
     ap.add_argument("--no-json-peer", action="store_true", help="skip the json.load peer run")
+    ap.add_argument(
+        "--reuse-tables", action="store_true", help="reuse fake tables left in --workdir"
+    )
     args = ap.parse_args()
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="radarslam_bench_"))
     try:
@@ -325,7 +336,7 @@ def main() -> None:
         print(
             f"\n## Table start-up, {args.records:,} fake sample_data records (fresh process each)\n"
         )
-        rows = bench_startup(workdir, args.records, not args.no_json_peer)
+        rows = bench_startup(workdir, args.records, not args.no_json_peer, args.reuse_tables)
         print("| run | time (s) | peak RSS (MiB) | radar records / records |\n|---|---|---|---|")
         for name, t, rss, n in rows:
             ts = "-" if t != t else f"{t:.2f}"

@@ -252,7 +252,7 @@ def _check_structure(path: Path, body: bytes, base: int, started: bool) -> None:
     if head != (b"," if started else b"["):
         what = "expected '[' at the start of the list" if not started else f"unexpected {head!r}"
         raise DataError(f"{path}: corrupt JSON ({what}, near byte {base})")
-    seps = sum(1 for _ in _SEP_RE.finditer(body))
+    seps = len(_SEP_RE.findall(body))
     if seps != n - 1:
         raise DataError(
             f"{path}: corrupt JSON (records between bytes {base} and {base + len(body)} are not "
@@ -284,7 +284,7 @@ def _loads_many(path: Path, pieces: list[tuple[bytes, int]]) -> list[dict]:
 
 
 def _text_array(path: Path, values: list, what: str, utf8: bool = False) -> np.ndarray:
-    if not all(type(v) is str for v in values):
+    if not set(map(type, values)) <= {str}:
         bad = next(v for v in values if type(v) is not str)
         raise DataError(f"{path}: a radar record has {what} {bad!r}, expected a string")
     if not values:
@@ -302,7 +302,7 @@ def _number_block(path: Path, recs: list[dict], key: str, n: int) -> np.ndarray:
     try:
         values = [r[key] for r in recs]
         arr = np.array(values, dtype=np.float64)
-        if arr.shape == (len(recs), n) and all(type(v) is list for v in values):
+        if arr.shape == (len(recs), n) and set(map(type, values)) <= {list}:
             return arr
     except (KeyError, TypeError, ValueError):
         pass
@@ -561,51 +561,55 @@ class NuScenesTables:
         cs_radar = {t: i for i, t in enumerate(small.cs_token) if small.cs_channel[i] >= 0}
 
         cols: dict[str, list] = {k: [] for k in ("token", "prev", "next", "ego", "filename")}
-        sample_rows: list[int] = []
-        cs_rows: list[int] = []
-        stamps: list[int] = []
-        keyf: list[bool] = []
+        # per-window numpy pieces, concatenated at the end (no Python int per record survives)
+        sample_rows: list[np.ndarray] = []
+        cs_rows: list[np.ndarray] = []
+        stamps: list[np.ndarray] = []
+        keyf: list[np.ndarray] = []
+        keys = {"token": "token", "prev": "prev", "next": "next", "ego": "ego_pose_token"}
+        keys["filename"] = "filename"
         for pieces in _radar_batches(p_sd):
             recs = _loads_many(p_sd, pieces)
-            got = {k: [] for k in cols}
-            rec: dict = {}
+            # column-wise comprehensions: several times faster than one loop with appends
             try:
-                for rec in recs:
-                    cs_tok = rec["calibrated_sensor_token"]
-                    cs_i = cs_radar.get(cs_tok)
-                    if cs_i is None:
-                        if cs_tok not in small.cs_row:
+                cs_i = [cs_radar.get(r["calibrated_sensor_token"], -1) for r in recs]
+                if -1 in cs_i:
+                    for r, c in zip(recs, cs_i, strict=True):
+                        if c < 0 and r["calibrated_sensor_token"] not in small.cs_row:
                             raise DataError(
-                                f"{p_sd}: record {rec.get('token')!r} calibrated_sensor_token "
-                                f"{cs_tok!r} is not in calibrated_sensor.json"
+                                f"{p_sd}: record {r.get('token')!r} calibrated_sensor_token "
+                                f"{r['calibrated_sensor_token']!r} is not in calibrated_sensor.json"
                             )
-                        continue  # not a radar (a camera file named after a radar?)
-                    s_i = small.sample_row.get(rec["sample_token"])
-                    if s_i is None:
-                        raise DataError(
-                            f"{p_sd}: record {rec.get('token')!r} sample_token "
-                            f"{rec['sample_token']!r} is not in sample.json"
-                        )
-                    ts = rec["timestamp"]
-                    if type(ts) is not int:
-                        raise DataError(
-                            f"{p_sd}: record {rec.get('token')!r} timestamp {ts!r} is not an int"
-                        )
-                    got["token"].append(rec["token"])
-                    got["prev"].append(rec["prev"])
-                    got["next"].append(rec["next"])
-                    got["ego"].append(rec["ego_pose_token"])
-                    got["filename"].append(rec["filename"])
-                    sample_rows.append(s_i)
-                    cs_rows.append(cs_i)
-                    stamps.append(ts)
-                    keyf.append(bool(rec["is_key_frame"]))
+                    # not radars after all (a camera file named after a radar?)
+                    recs = [r for r, c in zip(recs, cs_i, strict=True) if c >= 0]
+                    cs_i = [c for c in cs_i if c >= 0]
+                s_i = [small.sample_row.get(r["sample_token"], -1) for r in recs]
+                if -1 in s_i:
+                    r = recs[s_i.index(-1)]
+                    raise DataError(
+                        f"{p_sd}: record {r.get('token')!r} sample_token {r['sample_token']!r} "
+                        "is not in sample.json"
+                    )
+                ts = [r["timestamp"] for r in recs]
+                if not set(map(type, ts)) <= {int}:
+                    r = next(r for r in recs if type(r["timestamp"]) is not int)
+                    raise DataError(
+                        f"{p_sd}: record {r.get('token')!r} timestamp {r['timestamp']!r} "
+                        "is not an int"
+                    )
+                kf = [bool(r["is_key_frame"]) for r in recs]
+                for col, key in keys.items():
+                    values = [r[key] for r in recs]
+                    cols[col].append(_text_array(p_sd, values, col, utf8=col == "filename"))
             except KeyError as exc:
+                r = next(r for r in recs if exc.args[0] not in r)
                 raise DataError(
-                    f"{p_sd}: record {rec.get('token')!r} has no {exc.args[0]!r} field"
+                    f"{p_sd}: record {r.get('token')!r} has no {exc.args[0]!r} field"
                 ) from None
-            for k, values in got.items():
-                cols[k].append(_text_array(p_sd, values, k, utf8=k == "filename"))
+            cs_rows.append(np.asarray(cs_i, dtype=np.int32))
+            sample_rows.append(np.asarray(s_i, dtype=np.int32))
+            stamps.append(np.asarray(ts, dtype=np.int64))
+            keyf.append(np.asarray(kf, dtype=bool))
 
         def joined(k: str) -> np.ndarray:
             parts = cols.pop(k)
@@ -675,14 +679,18 @@ class NuScenesTables:
             )
         if n:
             log.debug("indexed %d radar sample_data records of %s", n, self.table_dir)
-        cs_arr = np.asarray(cs_rows, dtype=np.int32)
+
+        def cat(parts: list[np.ndarray], dtype) -> np.ndarray:
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype=dtype)
+
+        cs_arr = cat(cs_rows, np.int32)
         return RadarIndex(
             token=token,
-            sample=np.asarray(sample_rows, dtype=np.int32),
+            sample=cat(sample_rows, np.int32),
             calibrated_sensor=cs_arr,
             channel=small.cs_channel[cs_arr.astype(np.int64)].astype(np.int8),
-            timestamp_us=np.asarray(stamps, dtype=np.int64),
-            is_key_frame=np.asarray(keyf, dtype=bool),
+            timestamp_us=cat(stamps, np.int64),
+            is_key_frame=cat(keyf, bool),
             filename=filename,
             prev=prev_rows,
             next=next_rows,
