@@ -34,27 +34,23 @@ app.command("odometry")(_odometry_commands.odometry)
 from radarslam.eval import commands as _eval_commands  # noqa: E402
 
 app.command("eval")(_eval_commands.eval_command)
+from radarslam.sim import commands as _sim_commands  # noqa: E402
+
+app.command("simulate")(_sim_commands.simulate_command)
 # END COMMANDS
 
 
 def main() -> None:
-    """Console entry point: user errors become one line on stderr and exit status 2."""
+    """Console entry point: user errors become one line on stderr and exit status 2.
+
+    typer's standalone mode already turns usage errors into a usage line (exit 2); what reaches
+    this handler is a :class:`RadarSlamError` raised by a command.
+    """
     try:
-        app(standalone_mode=False)
+        app()
     except RadarSlamError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
-    except SystemExit:
-        raise
-    except Exception as exc:  # click usage errors arrive here in non-standalone mode
-        import click
-
-        if isinstance(exc, click.exceptions.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
-        if isinstance(exc, click.exceptions.Abort):
-            sys.exit(1)
-        raise

@@ -152,6 +152,10 @@ class PoseGraph:
             p = gtsam.ISAM2Params()
             p.setRelinearizeThreshold(self.config.isam2.relinearize_threshold)
             p.relinearizeSkip = self.config.isam2.relinearize_skip
+            # QR, not Cholesky: a later session's weak anchor (100 m, pi) beside radar odometry
+            # at millimetre level spans ~1e9 in information, which Cholesky reports as an
+            # indeterminate system.
+            p.setFactorization("QR")
             self._isam = gtsam.ISAM2(p)
         self._isam_fed = False
         self._batch_result = None  # gtsam.Values of the newest batch solve
@@ -408,6 +412,7 @@ class PoseGraph:
         t0 = time.perf_counter()
         start = self._current_values()
         p = g.LevenbergMarquardtParams()
+        p.setLinearSolverType("MULTIFRONTAL_QR")  # same conditioning reason as iSAM2
         p.setMaxIterations(self.config.batch.max_iterations)
         p.setRelativeErrorTol(self.config.batch.relative_error_tol)
         p.setAbsoluteErrorTol(self.config.batch.absolute_error_tol)

@@ -155,3 +155,21 @@ def test_bad_input_is_data_error():
         pg.add_loop(NodeKey("s", 0), NodeKey("s", 5), np.eye(4), np.eye(3))
     with pytest.raises(DataError, match="unknown session"):
         pg.add_odometry("t", 0, 1, np.eye(4), np.eye(3))
+
+
+def test_unlinked_session_beside_millimetre_odometry_is_solvable():
+    # Regression: a weak (100 m, pi) anchor next to radar odometry with ~1e-6 variances made
+    # iSAM2's Cholesky report an indeterminate system; QR handles the 1e9 information ratio.
+    from radarslam.geometry import se2_to_matrix
+
+    graph = PoseGraph(PoseGraphConfig())
+    cov = np.diag([1.2e-4, 1.3e-4, 2.5e-6])
+    graph.add_session("a", np.eye(4), "prior")
+    graph.add_session("b", se2_to_matrix(5.0, 0.0, 0.0), "unknown")
+    for s in ("a", "b"):
+        for i in range(17):
+            graph.add_odometry(s, i, i + 1, se2_to_matrix(3.0, 0.0, 0.01), cov)
+    graph.update()
+    est = graph.optimize_batch()
+    assert np.allclose(est[NodeKey("b", 0)], se2_to_matrix(5.0, 0.0, 0.0), atol=1e-6)
+    assert len(graph.components()) == 2

@@ -1,0 +1,51 @@
+"""The SLAM preset (``configs/slam/<preset>.yaml``): front end, loop detection, back end."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from radarslam.config import StrictModel
+from radarslam.odometry.config import OdometryConfig
+from radarslam.slam.backend_config import BackendConfig
+
+
+class KeyFrameConfig(StrictModel):
+    #: Sweeps per radar accumulated into a key frame's cloud (AutoPlace: 7, about 0.5 s).
+    nsweeps: int = Field(7, ge=1, le=30)
+    ref_channel: str = "RADAR_FRONT"
+    min_distance_m: float = Field(1.0, ge=0.0)
+    #: A verification local map is the key frame's cloud plus this many neighbours on each side
+    #: (only past ones for the query, which has no future yet), placed with odometry.
+    local_map_neighbors: int = Field(4, ge=0, le=50)
+
+
+class LoopDetectionConfig(StrictModel):
+    enabled: bool = True
+    #: AutoPlace checkpoint; None = the compact model shipped with the package.
+    checkpoint: str | None = None
+    #: Place-recognizer preset (accumulation / DPR / image / RCSHR settings) matching the model.
+    recognizer_config: str | None = "place_recognition/recognizer_default.yaml"
+    num_candidates: int = Field(3, ge=1, le=50)
+    #: Candidates whose re-ranked score is above this are not even verified (None: all).
+    max_score: float | None = Field(None, gt=0.0)
+    #: Key frames of the same session closer in time than this are never candidates.
+    exclude_recent_s: float = Field(30.0, ge=0.0)
+    #: After an accepted loop, the next this-many key frames of the session skip loop search.
+    min_key_frames_between_loops: int = Field(2, ge=0)
+    #: A new session joins the map only after this many loops agree on where it is.
+    link_min_consistent_loops: int = Field(2, ge=1)
+    link_consistency_m: float = Field(3.0, gt=0.0)
+    link_consistency_deg: float = Field(10.0, gt=0.0)
+
+
+class SlamConfig(StrictModel):
+    odometry: OdometryConfig = Field(default_factory=OdometryConfig)
+    key_frames: KeyFrameConfig = Field(default_factory=KeyFrameConfig)
+    loops: LoopDetectionConfig = Field(default_factory=LoopDetectionConfig)
+    backend: BackendConfig = Field(default_factory=BackendConfig)
+    #: Where the first session starts: its first ground-truth pose (so the map lives in the
+    #: nuScenes global frame; no other ground truth is used) or the identity. Later sessions
+    #: always start unknown and are placed by loop closures.
+    first_session_anchor: Literal["ground_truth", "identity"] = "ground_truth"

@@ -1,0 +1,510 @@
+"""The SLAM pipeline: radar odometry + AutoPlace loop detection + registration + GTSAM pose graph.
+
+``SlamPipeline(reader, config).run(scenes)`` reads as its list of steps. For every scene (a
+*session*), frame by frame:
+
+1. **Odometry** (:class:`~radarslam.odometry.pipeline.RadarOdometry`): Doppler ego-motion fused
+   with kiss-icp scan-to-map registration; the frame's sweeps are buffered with the estimated pose.
+2. At each **key frame** (~2 Hz):
+   a. accumulate 5 radars x 7 sweeps with the *estimated* poses, dynamic points removed
+      (:mod:`radarslam.slam.keyframes`);
+   b. a pose-graph node, tied to the previous key frame by the odometry's key-frame motion and
+      its covariance;
+   c. **place recognition**: the AutoPlace descriptor of the last key frames (query is pure,
+      insertion explicit), candidates among earlier key frames excluding the recent past of the
+      same session;
+   d. **verification** of each candidate by registering the two key frames' local maps
+      (:class:`~radarslam.slam.loop_closure.LoopVerifier`); every candidate, accepted or not, is
+      logged with the reason;
+   e. accepted loops become robust factors; iSAM2 receives only the new factors and values.
+3. A final batch Levenberg-Marquardt, the static map, and the results folder.
+
+Multi-session. Each scene is its own odometry chain. The first session is anchored; a later one is
+held outside the graph until ``link_min_consistent_loops`` verified loops agree on where it lies,
+and is then inserted with its poses moved there (iSAM2 never sees a chain initialised kilometres
+away). Intra- and inter-session loops found before the link are kept and added with it. A session
+that never links is added at the end on its own weak anchor and reported as a separate component,
+not forced into the map.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from radarslam.errors import DataError
+from radarslam.geometry import invert, wrap_angle
+from radarslam.slam.config import SlamConfig
+from radarslam.slam.records import LoopCandidate, NodeKey
+from radarslam.types import SceneInfo
+
+#: Odometry covariance (x, y, yaw) used where the odometry chain broke (a long gap in the data).
+_BROKEN_CHAIN_SIGMAS = np.array([10.0, 10.0, 0.5])
+
+
+@dataclass
+class KeyFrame:
+    key: NodeKey
+    timestamp_us: int
+    sample_token: str
+    odometry_pose: np.ndarray  # world_from_ego in the session's odometry frame
+    gt_pose: np.ndarray  # ground truth, kept for the outputs only (never used by the estimate)
+    cloud_xy_ego: np.ndarray  # (N, 2) static points of the key-frame cloud, ego frame
+    cloud_points: np.ndarray  # the accumulated cloud (reference-radar frame), for the map
+    ego_from_ref: np.ndarray
+    relative: np.ndarray | None = None  # prev_ego_from_ego from the odometry
+    relative_cov: np.ndarray | None = None
+
+
+@dataclass
+class _PendingLoop:
+    """A verified loop of a session not yet in the graph."""
+
+    record: LoopCandidate
+    information: np.ndarray
+    #: For a loop to a session already in the map: where it says this session lies.
+    world_from_session: np.ndarray | None = None
+
+
+@dataclass
+class _Session:
+    name: str
+    index: int
+    key_frames: list[KeyFrame] = field(default_factory=list)
+    inserted: bool = False
+    pending: list[_PendingLoop] = field(default_factory=list)
+    last_loop_kf: int = -(10**9)
+
+
+@dataclass
+class SlamTimings:
+    frames: int = 0
+    key_frames: int = 0
+    data_s: float = 0.0
+    odometry_s: float = 0.0
+    key_frame_s: float = 0.0  # accumulation and local maps
+    place_recognition_s: float = 0.0
+    verification_s: float = 0.0
+    backend_s: float = 0.0
+    final_optimization_s: float = 0.0
+    isam2_update_ms: list[float] = field(default_factory=list)
+
+    @property
+    def total_s(self) -> float:
+        return (
+            self.data_s
+            + self.odometry_s
+            + self.key_frame_s
+            + self.place_recognition_s
+            + self.verification_s
+            + self.backend_s
+            + self.final_optimization_s
+        )
+
+
+@dataclass
+class SlamResult:
+    sessions: list  # list[radarslam.slam.outputs.SessionResult]
+    loops: list[LoopCandidate]
+    components: list  # list[radarslam.slam.pose_graph.GraphComponent]
+    static_map: object | None
+    timings: SlamTimings
+    duration_s: float  # sensor time covered by the run
+    graph: object = None  # the PoseGraph, for marginals / g2o export
+
+    @property
+    def accepted_loops(self) -> list[LoopCandidate]:
+        return [c for c in self.loops if c.accepted]
+
+
+def _se2_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    d = invert(a) @ b
+    return float(np.hypot(d[0, 3], d[1, 3])), float(
+        abs(np.degrees(wrap_angle(np.arctan2(d[1, 0], d[0, 0]))))
+    )
+
+
+class SlamPipeline:
+    """Single- and multi-session radar SLAM over scenes of a :class:`NuScenesRadar` reader."""
+
+    def __init__(self, reader, config: SlamConfig | None = None, recognizer=None, progress=True):
+        from radarslam.nuscenes.filters import RadarPointFilter
+        from radarslam.odometry.pipeline import RadarOdometry
+        from radarslam.slam.loop_closure import LoopVerifier
+        from radarslam.slam.pose_graph import PoseGraph
+
+        self.reader = reader
+        self.config = config or SlamConfig()
+        cfg = self.config
+        self.progress = progress
+        self.odometry = RadarOdometry(cfg.odometry.model_copy(deep=True))
+        pc = cfg.odometry.points
+        self._frame_filter = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+        self.graph = PoseGraph(cfg.backend.pose_graph)
+        self.verifier = LoopVerifier(cfg.backend.loop_verification)
+        self.recognizer = recognizer
+        if self.recognizer is None and cfg.loops.enabled:
+            self.recognizer = load_recognizer(cfg.loops.checkpoint, cfg.loops.recognizer_config)
+        self.sessions: dict[str, _Session] = {}
+        self.loops: list[LoopCandidate] = []
+        self.timings = SlamTimings()
+        self._kf_by_key: dict[NodeKey, KeyFrame] = {}
+        self._duration_s = 0.0
+
+    # --- the run ---------------------------------------------------------------------------------
+
+    def run(self, scenes: Iterable[str | SceneInfo]) -> SlamResult:
+        infos = [self.reader.scene(s) for s in scenes]  # unknown names fail before any work
+        if not infos:
+            raise DataError("no scene to run SLAM on")
+        names = [i.name for i in infos]
+        if len(set(names)) != len(names):
+            raise DataError(f"scene listed twice in {names}")
+        bar = self._progress_bar(infos)
+        try:
+            for info in infos:
+                span = self._run_session(info, bar)
+                if span is not None:
+                    self._duration_s += (span[1] - span[0]) * 1e-6
+        finally:
+            if bar is not None:
+                bar.close()
+        if not any(s.key_frames for s in self.sessions.values()):
+            raise DataError(f"no key frame with radar data in scene(s) {', '.join(names)}")
+        for session in self.sessions.values():
+            if not session.inserted and session.key_frames:
+                self._insert_session(session, np.eye(4), anchor="unknown")
+        t0 = time.perf_counter()
+        self.graph.update()
+        self.graph.optimize_batch()
+        self.timings.final_optimization_s += time.perf_counter() - t0
+        return self._result()
+
+    def _run_session(self, info: SceneInfo, bar) -> tuple[int, int] | None:
+        cfg = self.config
+        from radarslam.slam.keyframes import SweepBuffer
+
+        session = _Session(info.name, len(self.sessions))
+        self.sessions[info.name] = session
+        first = session.index == 0
+        self.odometry.config.initial_pose = (
+            cfg.first_session_anchor if first else "identity"  # later sessions: unknown start
+        )
+        self.odometry.reset()
+        buffer = SweepBuffer(
+            nsweeps=cfg.key_frames.nsweeps,
+            ref_channel=cfg.key_frames.ref_channel,
+            min_distance_m=cfg.key_frames.min_distance_m,
+            point_mask=self._dpr_mask(),
+        )
+        span = None
+        t_data = time.perf_counter()
+        for frame in self.reader.iter_frames(info, filters=self._frame_filter):
+            t0 = time.perf_counter()
+            self.timings.data_s += t0 - t_data
+            res = self.odometry.process(frame)
+            t1 = time.perf_counter()
+            self.timings.odometry_s += t1 - t0
+            self.timings.frames += 1
+            span = (frame.timestamp_us if span is None else span[0], frame.timestamp_us)
+            twist = res.doppler.twist if res.doppler.valid else np.zeros(3)
+            buffer.add_frame(frame, res.world_from_ego, twist)
+            if frame.is_key_frame:
+                self._key_frame(session, frame, res, buffer)
+            if bar is not None:
+                bar.update(1)
+            t_data = time.perf_counter()
+        return span
+
+    # --- one key frame --------------------------------------------------------------------------
+
+    def _key_frame(self, session: _Session, frame, res, buffer) -> None:
+        t0 = time.perf_counter()
+        cloud = buffer.accumulate(frame.timestamp_us, res.world_from_ego, frame.sample_token)
+        if cloud is None:  # the reference radar has not been seen yet in this session
+            return
+        ego_from_ref = buffer.ego_from_ref()
+        xy_ref = np.column_stack([cloud.points["x"], cloud.points["y"]])
+        xy_ego = xy_ref @ ego_from_ref[:2, :2].T + ego_from_ref[:2, 3]
+        index = len(session.key_frames)
+        prev = session.key_frames[-1] if session.key_frames else None
+        kf = KeyFrame(
+            key=NodeKey(session.name, index),
+            timestamp_us=int(frame.timestamp_us),
+            sample_token=frame.sample_token,
+            odometry_pose=np.array(res.world_from_ego, dtype=np.float64),
+            gt_pose=np.array(frame.world_from_ego, dtype=np.float64),
+            cloud_xy_ego=xy_ego,
+            cloud_points=cloud.points,
+            ego_from_ref=ego_from_ref,
+        )
+        if prev is not None:
+            if res.key_frame_motion is not None:
+                kf.relative = np.asarray(res.key_frame_motion, dtype=np.float64)
+                kf.relative_cov = np.asarray(res.key_frame_covariance, dtype=np.float64)
+            else:  # the odometry restarted (gap in the data): a weak link keeps the chain whole
+                kf.relative = invert(prev.odometry_pose) @ kf.odometry_pose
+                kf.relative_cov = np.diag(np.square(_BROKEN_CHAIN_SIGMAS))
+        session.key_frames.append(kf)
+        self._kf_by_key[kf.key] = kf
+        self.timings.key_frames += 1
+        t1 = time.perf_counter()
+        self.timings.key_frame_s += t1 - t0
+
+        if session.inserted:
+            self._add_node(session, kf)
+        elif index == 0 and session.index == 0:
+            self._insert_session(session, np.eye(4), anchor="prior")
+
+        if self.recognizer is not None:
+            self._detect_loops(session, kf, cloud)
+        t2 = time.perf_counter()
+        if session.inserted:
+            self.timings.isam2_update_ms.append(1e3 * self.graph.update())
+        self.timings.backend_s += time.perf_counter() - t2
+
+    def _add_node(self, session: _Session, kf: KeyFrame) -> None:
+        if kf.key.index == 0:
+            return
+        self.graph.add_odometry(
+            session.name, kf.key.index - 1, kf.key.index, kf.relative, kf.relative_cov
+        )
+
+    # --- loops ----------------------------------------------------------------------------------
+
+    def _detect_loops(self, session: _Session, kf: KeyFrame, cloud) -> None:
+        cfg = self.config.loops
+        t0 = time.perf_counter()
+        seq = self._sequence_clouds(session, cloud)
+        desc, rcs = self.recognizer.describe(seq)
+        candidates = []
+        if kf.key.index - session.last_loop_kf > cfg.min_key_frames_between_loops:
+            candidates = self.recognizer.query_descriptor(
+                desc, rcs, k=cfg.num_candidates, exclude=self._excluded(kf)
+            )
+        self.recognizer.add_descriptor(desc, rcs, kf.key)
+        t1 = time.perf_counter()
+        self.timings.place_recognition_s += t1 - t0
+        for cand in candidates:
+            if cfg.max_score is not None and cand.score > cfg.max_score:
+                continue
+            self._verify(session, kf, self._kf_by_key[cand.key], cand.descriptor_distance)
+        self.timings.verification_s += time.perf_counter() - t1
+
+    def _sequence_clouds(self, session: _Session, cloud) -> list:
+        # Earlier clouds of the sequence (t-2, t-1) are kept on the key frames themselves.
+        n = getattr(self.recognizer, "seq_len", 1) or 1
+        past = [self._cloud_of(k) for k in session.key_frames[-n:-1]]
+        return [*past, cloud]
+
+    def _cloud_of(self, kf: KeyFrame):
+        from radarslam.types import AccumulatedCloud
+
+        return AccumulatedCloud(
+            points=kf.cloud_points,
+            world_from_ref=kf.odometry_pose @ kf.ego_from_ref,
+            ref_channel=self.config.key_frames.ref_channel,
+            timestamp_us=kf.timestamp_us,
+            sample_token=kf.sample_token,
+        )
+
+    def _excluded(self, kf: KeyFrame) -> Callable[[NodeKey], bool]:
+        recent_us = self.config.loops.exclude_recent_s * 1e6
+
+        def skip(key: NodeKey) -> bool:
+            if key.session != kf.key.session:
+                return False
+            return kf.timestamp_us - self._kf_by_key[key].timestamp_us < recent_us
+
+        return skip
+
+    def _local_map(self, kf: KeyFrame, past_only: bool) -> np.ndarray:
+        n = self.config.key_frames.local_map_neighbors
+        frames = self.sessions[kf.key.session].key_frames
+        lo = max(0, kf.key.index - n)
+        hi = kf.key.index + 1 if past_only else min(len(frames), kf.key.index + n + 1)
+        ego_from_world = invert(kf.odometry_pose)
+        chunks = []
+        for other in frames[lo:hi]:
+            t = ego_from_world @ other.odometry_pose
+            chunks.append(other.cloud_xy_ego @ t[:2, :2].T + t[:2, 3])
+        return np.concatenate(chunks) if chunks else np.zeros((0, 2))
+
+    def _guess(self, query: KeyFrame, cand: KeyFrame) -> np.ndarray | None:
+        qs, cs = self.sessions[query.key.session], self.sessions[cand.key.session]
+        if qs is cs:
+            return invert(cand.odometry_pose) @ query.odometry_pose
+        if qs.inserted and cs.inserted:
+            return invert(self.graph.current_pose(cand.key)) @ self.graph.current_pose(query.key)
+        return None
+
+    def _verify(self, session: _Session, query: KeyFrame, cand: KeyFrame, distance: float) -> None:
+        record, ver = self.verifier.verify_candidate(
+            query.key,
+            cand.key,
+            query.timestamp_us,
+            cand.timestamp_us,
+            distance,
+            self._local_map(query, past_only=True),
+            self._local_map(cand, past_only=False),
+            self._guess(query, cand),
+        )
+        if not record.accepted:
+            self.loops.append(record)
+            return
+        cand_session = self.sessions[cand.key.session]
+        if session.inserted and cand_session.inserted:
+            self._add_loop(record, ver.information)
+        elif cand_session.inserted:  # a loop from outside the map into it: a link vote
+            world_from_session = (
+                self.graph.current_pose(cand.key)
+                @ record.candidate_from_query
+                @ invert(query.odometry_pose)
+            )
+            session.pending.append(_PendingLoop(record, ver.information, world_from_session))
+            self._try_link(session)
+        elif cand_session is session:  # inside a session that is not in the map yet
+            session.pending.append(_PendingLoop(record, ver.information))
+        else:
+            self.loops.append(
+                replace(record, accepted=False, reason="neither session is in the map yet")
+            )
+            return
+        session.last_loop_kf = query.key.index
+
+    def _add_loop(self, record: LoopCandidate, information: np.ndarray) -> None:
+        self.graph.add_loop(
+            record.candidate, record.query, record.candidate_from_query, information
+        )
+        self.loops.append(record)
+
+    def _try_link(self, session: _Session) -> None:
+        """Insert ``session`` once enough link votes agree on where it lies (the largest set of
+        mutually consistent votes wins; the others are rejected as false loops)."""
+        cfg = self.config.loops
+        votes = [p for p in session.pending if p.world_from_session is not None]
+        limits = (cfg.link_consistency_m, cfg.link_consistency_deg)
+        best: list[_PendingLoop] = []
+        for v in votes:
+            agree = [
+                w
+                for w in votes
+                if all(
+                    d <= lim
+                    for d, lim in zip(
+                        _se2_distance(v.world_from_session, w.world_from_session),
+                        limits,
+                        strict=True,
+                    )
+                )
+            ]
+            if len(agree) > len(best):
+                best = agree
+        if len(best) >= cfg.link_min_consistent_loops:
+            self._insert_session(session, best[0].world_from_session, "unknown", best)
+
+    def _insert_session(
+        self,
+        session: _Session,
+        world_from_session: np.ndarray,
+        anchor: str,
+        agreeing: list[_PendingLoop] | None = None,
+    ) -> None:
+        """Put a session's chain into the graph at ``world_from_session`` with its pending loops.
+        Link votes outside ``agreeing`` are rejected as false loops; a session inserted without
+        a link (never linked) keeps only its intra-session loops."""
+        kfs = session.key_frames
+        self.graph.add_session(session.name, world_from_session @ kfs[0].odometry_pose, anchor)
+        session.inserted = True
+        for kf in kfs[1:]:
+            self._add_node(session, kf)
+        accepted_votes = {id(p) for p in agreeing or []}
+        for p in session.pending:
+            if p.world_from_session is not None and id(p) not in accepted_votes:
+                reason = (
+                    "inconsistent with the session link"
+                    if agreeing is not None
+                    else "too few consistent loops to link the session"
+                )
+                self.loops.append(replace(p.record, accepted=False, reason=reason))
+            else:
+                self._add_loop(p.record, p.information)
+        session.pending = []
+
+    # --- results --------------------------------------------------------------------------------
+
+    def _dpr_mask(self):
+        if self.recognizer is None:
+            from place_recognition.config import DPRConfig
+            from place_recognition.dpr import make_point_mask
+
+            return make_point_mask(DPRConfig())
+        from place_recognition.dpr import make_point_mask
+
+        return make_point_mask(self.recognizer.config.dpr)
+
+    def _result(self) -> SlamResult:
+        from radarslam.slam.map import StaticMapBuilder
+        from radarslam.slam.outputs import SessionResult
+
+        estimate = self.graph.estimate()
+        sessions = []
+        builder = StaticMapBuilder(self.config.backend.static_map)
+        for s in self.sessions.values():
+            if not s.key_frames:
+                continue
+            slam = np.stack([estimate[kf.key] for kf in s.key_frames])
+            sessions.append(
+                SessionResult(
+                    name=s.name,
+                    timestamps_us=np.array([kf.timestamp_us for kf in s.key_frames], np.int64),
+                    slam_poses=slam,
+                    odometry_poses=np.stack([kf.odometry_pose for kf in s.key_frames]),
+                    gt_poses=np.stack([kf.gt_pose for kf in s.key_frames]),
+                )
+            )
+            for kf, pose in zip(s.key_frames, slam, strict=True):
+                builder.add(pose @ kf.ego_from_ref, kf.cloud_points)
+        has_points = any(len(kf.cloud_points) for kf in self._kf_by_key.values())
+        static_map = builder.build() if has_points else None
+        return SlamResult(
+            sessions=sessions,
+            loops=list(self.loops),
+            components=self.graph.components(),
+            static_map=static_map,
+            timings=self.timings,
+            duration_s=self._duration_s,
+            graph=self.graph,
+        )
+
+    def _progress_bar(self, infos: Sequence[SceneInfo]):
+        if not self.progress:
+            return None
+        from tqdm import tqdm
+
+        ref = self.config.key_frames.ref_channel
+        total = sum(len(self.reader.sweep_tokens(i, ref)) for i in infos)
+        return tqdm(total=total, unit="frame", desc="slam", leave=False)
+
+
+def load_recognizer(checkpoint: str | None, recognizer_config: str | None):
+    """The place recognizer for the pipeline (shipped compact checkpoint by default)."""
+    from place_recognition.config import PlaceRecognizerConfig
+    from place_recognition.recognizer import PlaceRecognizer
+    from radarslam.config import CONFIG_DIR, load_config
+
+    cfg = None
+    if recognizer_config is not None:
+        from pathlib import Path
+
+        path = Path(recognizer_config)
+        if not path.is_absolute() and not path.exists():
+            path = CONFIG_DIR / path
+        cfg = load_config(PlaceRecognizerConfig, path)
+    return PlaceRecognizer(checkpoint=checkpoint, config=cfg)
+
+
+__all__ = ["KeyFrame", "SlamPipeline", "SlamResult", "SlamTimings", "load_recognizer"]
