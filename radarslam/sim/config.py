@@ -111,8 +111,9 @@ class RadarConfig(StrictModel):
     near_gain_db: float = -9.0
     far_gain_db: float = 2.0
     snr_width_db: float = Field(3.0, gt=0)
+    stc_range_m: float = Field(25.0, ge=1)  # path loss is flat below this range
     max_points: int = Field(125, ge=1, le=10000)
-    clutter_rate: float = Field(105.0, ge=0)  # low-quality clusters per sweep (Poisson mean)
+    clutter_rate: float = Field(115.0, ge=0)  # low-quality clusters per sweep (Poisson mean)
     ghost_probability: float = Field(0.12, ge=0, le=1)
     double_bounce_probability: float = Field(0.03, ge=0, le=1)
     noise: RadarNoiseConfig = Field(default_factory=RadarNoiseConfig)

@@ -284,6 +284,8 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
         route = routes[plan.route_index]
         if plan.reversed:
             route = route[::-1]
+        # Logs of one route enter it at different points: overlapping, not identical, sections.
+        route = route[int(rng.integers(0, max(len(route) // 3, 1))) :]
         need = cfg.ego.max_speed_mps * (t_end + 10.0) + 300.0
         route = extend_route(world.network, rng, route, need)
         pts = world.network.nodes[route]

@@ -250,8 +250,10 @@ class RadarModel:
             p = (xy - sensor_xy) @ rot.T
             r = np.hypot(p[:, 0], p[:, 1])
             a = np.abs(np.arctan2(p[:, 1], p[:, 0]))
-            return (r < 30.0) | ((a < near_lim) & (r < cfg.near_range_m + 20.0)) | (
-                (a < far_lim) & (r < cfg.far_range_m + 20.0)
+            return (
+                (r < 30.0)
+                | ((a < near_lim) & (r < cfg.near_range_m + 20.0))
+                | ((a < far_lim) & (r < cfg.far_range_m + 20.0))
             )
 
         def keep_seg(sg):
@@ -393,7 +395,9 @@ class RadarModel:
 
     def _snr(self, rcs, r, az, in_far):
         cfg = self.cfg
-        path = -40.0 * np.log10(np.maximum(r, 1.0) / 100.0)
+        # Sensitivity time control: near-range gain is held down, so weak near clutter (leaves,
+        # kerbs) does not swamp the cluster list.
+        path = -40.0 * np.log10(np.maximum(r, cfg.stc_range_m) / 100.0)
         g_near = cfg.near_gain_db - 10.0 * (az / np.deg2rad(cfg.near_fov_deg)) ** 2
         g_far = np.where(
             in_far, cfg.far_gain_db - 3.0 * (az / np.deg2rad(cfg.far_fov_deg)) ** 2, -np.inf

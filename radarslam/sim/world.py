@@ -340,7 +340,7 @@ class _CityBuilder:
             self.parts.append(
                 Scatterers(
                     corners,
-                    rng.normal(16.0, 4.0, 2),
+                    rng.normal(18.0, 5.0, 2),
                     np.full(2, CORNER, np.int8),
                     cn,
                     np.full(2, np.deg2rad(40.0)),
@@ -365,7 +365,7 @@ class _CityBuilder:
                 FACADE,
                 normal,
                 lobe=np.deg2rad(10.0),
-                spec=rng.uniform(4.0, 14.0, n),
+                spec=rng.uniform(5.0, 18.0, n),
                 p_scale=rng.uniform(0.45, 1.0, n),
             )
         )
@@ -407,7 +407,7 @@ class _CityBuilder:
         self.parts.append(
             _make(
                 xy,
-                rng.normal(-9.0, 4.0, n),
+                rng.normal(-6.0, 3.0, n),
                 VEGETATION,
                 p_scale=rng.uniform(0.15, 0.4, n),
                 jitter=0.5,
@@ -430,7 +430,7 @@ class _CityBuilder:
         self.parts.append(
             _make(
                 centres,
-                rng.normal(-2.0, 3.0, len(centres)),
+                rng.normal(-1.0, 3.0, len(centres)),
                 TREE,
                 p_scale=rng.uniform(0.3, 0.7, len(centres)),
                 jitter=0.15,
@@ -441,7 +441,7 @@ class _CityBuilder:
         self.parts.append(
             _make(
                 canopy,
-                rng.normal(-8.0, 4.0, len(canopy)),
+                rng.normal(-5.5, 3.0, len(canopy)),
                 VEGETATION,
                 p_scale=rng.uniform(0.1, 0.4, len(canopy)),
                 jitter=0.5,
@@ -485,7 +485,7 @@ class _CityBuilder:
         self.parts.append(
             _make(
                 xy,
-                rng.normal(-10.0, 3.0, n),
+                rng.normal(-8.0, 3.0, n),
                 GUARDRAIL,
                 normal,
                 lobe=np.deg2rad(3.5),
@@ -494,7 +494,7 @@ class _CityBuilder:
             )
         )
         posts = xy[::2] - normal * 0.1
-        self.parts.append(_make(posts, rng.normal(-7.0, 3.0, len(posts)), GUARDRAIL, p_scale=0.35))
+        self.parts.append(_make(posts, rng.normal(-4.0, 3.0, len(posts)), GUARDRAIL, p_scale=0.35))
 
 
 def build_world(cfg: CityConfig, seed: int, light_cycle=(45.0, 75.0)) -> StaticWorld:
