@@ -71,6 +71,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu", help="descriptor device")
     ap.add_argument("--sizes", default="compact,paper", help="model sizes to evaluate")
     ap.add_argument("--threads", type=int, default=2, help="CPU threads for throughput")
+    ap.add_argument("--jobs", type=int, default=1, help="processes for preprocessing")
     args = ap.parse_args(argv)
 
     from place_recognition.ablation import VARIANTS, find_checkpoint, prepare_pair, run_ablation
@@ -87,7 +88,7 @@ def main(argv=None) -> int:
     cfg_path = args.config or CONFIG_DIR / "place_recognition" / "data_city.yaml"
     prep = load_config(PrepareConfig, cfg_path, [f"source.dataroot={args.dataroot}"])
     t0 = time.perf_counter()
-    dpr_root, nodpr_root = prepare_pair(prep, args.cache_root)
+    dpr_root, nodpr_root = prepare_pair(prep, args.cache_root, jobs=args.jobs)
     data, data_nodpr = load_prepared(dpr_root), load_prepared(nodpr_root)
     t_prep = time.perf_counter() - t0
     counts = json.loads((dpr_root / "split.json").read_text())

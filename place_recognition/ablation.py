@@ -46,7 +46,11 @@ VARIANTS: tuple[Variant, ...] = (
 
 
 def prepare_pair(
-    cfg: PrepareConfig, cache_root: str | Path, overwrite: bool = False, progress: bool = True
+    cfg: PrepareConfig,
+    cache_root: str | Path,
+    overwrite: bool = False,
+    progress: bool = True,
+    jobs: int = 1,
 ) -> tuple[Path, Path]:
     """(with-DPR cache, without-DPR cache) of one data config."""
     from place_recognition.prepare import prepare
@@ -56,8 +60,8 @@ def prepare_pair(
         update={"name": f"{cfg.name}_nodpr", "dpr": cfg.dpr.model_copy(update={"enabled": False})}
     )
     return (
-        prepare(with_dpr, cache_root, overwrite=overwrite, progress=progress),
-        prepare(no_dpr, cache_root, overwrite=overwrite, progress=progress),
+        prepare(with_dpr, cache_root, overwrite=overwrite, progress=progress, jobs=jobs),
+        prepare(no_dpr, cache_root, overwrite=overwrite, progress=progress, jobs=jobs),
     )
 
 

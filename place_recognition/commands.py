@@ -26,6 +26,7 @@ def prepare_cmd(
     out: Path = typer.Option(Path("outputs/place_recognition"), help="cache root"),
     dataroot: Path | None = typer.Option(None, help="nuScenes-layout dataroot (overrides config)"),
     overwrite: bool = typer.Option(False, help="recompute every stage"),
+    jobs: int = typer.Option(1, help="worker processes for accumulation"),
     overrides: list[str] | None = _SET,
 ) -> None:
     """Index key frames, accumulate + DPR + rasterise, split; cached in OUT/<name>/."""
@@ -37,7 +38,7 @@ def prepare_cmd(
     if dataroot is not None:
         sets.append(f"source.dataroot={dataroot}")
     cfg = load_prepare_config(config, sets)
-    root = prepare(cfg, out, overwrite=overwrite)
+    root = prepare(cfg, out, overwrite=overwrite, jobs=jobs)
     typer.echo(f"prepared {root}")
     _echo_table([split_summary(root)])
 

@@ -290,8 +290,12 @@ def split_offsets(values: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     return [values[offsets[i] : offsets[i + 1]] for i in range(len(offsets) - 1)]
 
 
-def load_prepared(root: str | Path) -> PreparedData:
-    """Load a prepared cache directory written by :func:`place_recognition.prepare.prepare`."""
+def load_prepared(root: str | Path, with_points: bool = True) -> PreparedData:
+    """Load a prepared cache directory written by :func:`place_recognition.prepare.prepare`.
+
+    ``with_points=False`` skips ``points.npz`` (RCS and points: only RCSHR and the handcrafted
+    baselines need them), e.g. to train from a copy that lacks it.
+    """
     from place_recognition.image import unpack_images
     from radarslam.config import build_config, read_yaml
 
@@ -304,8 +308,11 @@ def load_prepared(root: str | Path) -> PreparedData:
           root / FRAMES_FILE)  # fmt: skip
     images = _load_npz(root / IMAGES_FILE)
     _need(images, ("occupancy_packed", "width"), root / IMAGES_FILE)
-    points = _load_npz(root / POINTS_FILE)
-    _need(points, ("xy_cm", "rcs01", "offsets"), root / POINTS_FILE)
+    if with_points:
+        points = _load_npz(root / POINTS_FILE)
+        _need(points, ("xy_cm", "rcs01", "offsets"), root / POINTS_FILE)
+    else:
+        points = {"xy_cm": np.zeros((0, 2), np.int16), "rcs01": np.zeros(0, np.float32)}
     split = _load_npz(root / SPLIT_FILE)
     _need(split, ("sequences", *SPLIT_NAMES), root / SPLIT_FILE)
 
@@ -319,9 +326,10 @@ def load_prepared(root: str | Path) -> PreparedData:
         imgs = np.concatenate([occ[:, None].astype(np.float16), extra], axis=1)
     else:
         imgs = occ
-    offsets = points["offsets"].astype(np.int64)
-    if len(offsets) != n + 1 or offsets[-1] != len(points["rcs01"]):
-        raise DataError(f"{root / POINTS_FILE}: offsets do not match {n} frames")
+    if with_points:
+        offsets = points["offsets"].astype(np.int64)
+        if len(offsets) != n + 1 or offsets[-1] != len(points["rcs01"]):
+            raise DataError(f"{root / POINTS_FILE}: offsets do not match {n} frames")
     xy = points["xy_cm"].astype(np.float32) / 100.0
     return PreparedData(
         root=root,
@@ -331,12 +339,12 @@ def load_prepared(root: str | Path) -> PreparedData:
         timestamps_us=frames["timestamps_us"].astype(np.int64),
         scene_names=frames["scene_names"].astype(str),
         sample_tokens=frames["sample_tokens"].astype(str),
-        rcs=split_offsets(points["rcs01"].astype(np.float32), offsets),
+        rcs=split_offsets(points["rcs01"].astype(np.float32), offsets) if with_points else [],
         sequences=split["sequences"].astype(np.int64),
         splits={k: split[k].astype(np.int64) for k in SPLIT_NAMES},
         pos_radius_m=cfg.split.pos_radius_m,
         neg_radius_m=cfg.split.neg_radius_m,
-        points_xy=split_offsets(xy, offsets),
+        points_xy=split_offsets(xy, offsets) if with_points else [],
         config=cfg,
     )
 

@@ -56,6 +56,15 @@ class DPRStats:
     def removed_fraction(self) -> float:
         return 1.0 - self.points_kept / self.points_in if self.points_in else 0.0
 
+    def merge(self, other: DPRStats) -> None:
+        self.sweeps += other.sweeps
+        self.sweeps_static_ego += other.sweeps_static_ego
+        self.sweeps_failed += other.sweeps_failed
+        self.points_in += other.points_in
+        self.points_kept += other.points_kept
+        for ch, k in other.per_channel_removed.items():
+            self.per_channel_removed[ch] = self.per_channel_removed.get(ch, 0) + k
+
     def as_dict(self) -> dict:
         return {
             "sweeps": self.sweeps,

@@ -16,6 +16,7 @@ skipped; if its hash differs from the current config, ``ConfigError`` unless ``o
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 from collections.abc import Callable
@@ -173,23 +174,23 @@ def frame_from_cloud(cloud, cfg: PrepareConfig | None = None, image_cfg=None) ->
     return FrameCloud(xy=xy, rcs01=rcs01, image=rasterise(xy, image_cfg, rcs01))
 
 
-def build_clouds(cfg: PrepareConfig, readers, index: KeyFrameIndex, progress: bool = True):
-    """Accumulate (with DPR) every key frame; returns images, points, rcs, offsets, DPR stats."""
+def _clouds_for(cfg: PrepareConfig, readers, tokens, versions, progress: bool = False):
+    """Images, points and DPR stats of a list of key frames (one process)."""
     from tqdm import tqdm
 
-    from place_recognition.dpr import DynamicPointsRemoval
+    from place_recognition.dpr import DPRStats, DynamicPointsRemoval
 
     acc = cfg.accumulation
     dpr = DynamicPointsRemoval(cfg.dpr) if cfg.dpr.enabled else None
-    n = len(index.sample_tokens)
+    n = len(tokens)
     size = cfg.image.size_px
     occ = np.zeros((n, size, (size + 7) // 8), np.uint8)
     extra = np.zeros((n, cfg.image.num_channels - 1, size, size), np.uint8)
     xy_parts, rcs_parts = [], []
-    offsets = np.zeros(n + 1, np.int64)
+    counts = np.zeros(n, np.int64)
     for i in tqdm(range(n), desc="clouds", unit="frame", disable=not progress):
-        cloud = readers[str(index.versions[i])].accumulate(
-            str(index.sample_tokens[i]),
+        cloud = readers[str(versions[i])].accumulate(
+            str(tokens[i]),
             nsweeps=acc.nsweeps,
             channels=acc.channels,
             ref_channel=acc.ref_channel,
@@ -202,11 +203,61 @@ def build_clouds(cfg: PrepareConfig, readers, index: KeyFrameIndex, progress: bo
             extra[i] = fc.image[1:]
         xy_parts.append(np.clip(np.rint(fc.xy * 100.0), -32767, 32767).astype(np.int16))
         rcs_parts.append(fc.rcs01.astype(np.float16))
-        offsets[i + 1] = offsets[i] + len(fc.xy)
+        counts[i] = len(fc.xy)
     xy_cm = np.concatenate(xy_parts) if xy_parts else np.zeros((0, 2), np.int16)
     rcs01 = np.concatenate(rcs_parts) if rcs_parts else np.zeros(0, np.float16)
-    stats = dpr.stats.as_dict() if dpr is not None else {"enabled": False}
-    return occ, extra, xy_cm, rcs01, offsets, stats
+    return occ, extra, xy_cm, rcs01, counts, dpr.stats if dpr is not None else DPRStats()
+
+
+def _clouds_worker(job):
+    cfg_json, tokens, versions = job
+    cfg = PrepareConfig.model_validate_json(cfg_json)
+    return _clouds_for(cfg, _readers(cfg), tokens, versions)
+
+
+def build_clouds(
+    cfg: PrepareConfig, readers, index: KeyFrameIndex, progress: bool = True, jobs: int = 1
+):
+    """Accumulate (with DPR) every key frame; returns images, points, rcs, offsets, DPR stats.
+
+    ``jobs > 1`` splits the frames into contiguous chunks processed by worker processes (each opens
+    its own readers); the result is identical to ``jobs = 1``.
+    """
+    n = len(index.sample_tokens)
+    if jobs <= 1 or n < 2 * jobs:
+        parts = [_clouds_for(cfg, readers, index.sample_tokens, index.versions, progress)]
+    else:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        from tqdm import tqdm
+
+        bounds = np.linspace(0, n, min(n, 4 * jobs) + 1).astype(int)
+        chunks = [
+            (cfg.model_dump_json(), index.sample_tokens[a:b].tolist(), index.versions[a:b].tolist())
+            for a, b in itertools.pairwise(bounds)
+        ]
+        parts = []
+        with (
+            ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool,
+            tqdm(total=n, desc="clouds", unit="frame", disable=not progress) as bar,
+        ):
+            for part in pool.map(_clouds_worker, chunks):
+                parts.append(part)
+                bar.update(len(part[4]))
+    occ = np.concatenate([p[0] for p in parts])
+    extra = np.concatenate([p[1] for p in parts])
+    xy_cm = np.concatenate([p[2] for p in parts])
+    rcs01 = np.concatenate([p[3] for p in parts])
+    offsets = np.concatenate([[0], np.cumsum(np.concatenate([p[4] for p in parts]))])
+    if cfg.dpr.enabled:
+        total = parts[0][5]
+        for p in parts[1:]:
+            total.merge(p[5])
+        stats = total.as_dict()
+    else:
+        stats = {"enabled": False}
+    return occ, extra, xy_cm, rcs01, offsets.astype(np.int64), stats
 
 
 def _check_cache(out: Path, cfg: PrepareConfig, overwrite: bool) -> list[str]:
@@ -235,8 +286,12 @@ def prepare(
     progress: bool = True,
     readers=None,
     on_stage: Callable[[str], None] | None = None,
+    jobs: int = 1,
 ) -> Path:
-    """Run the missing stages into ``out_root/<cfg.name>``; returns that directory."""
+    """Run the missing stages into ``out_root/<cfg.name>``; returns that directory.
+
+    ``jobs``: worker processes for the accumulation stage (the expensive one).
+    """
     out = Path(out_root) / cfg.name
     todo = _check_cache(out, cfg, overwrite)
     out.mkdir(parents=True, exist_ok=True)
@@ -261,7 +316,7 @@ def prepare(
     if "clouds" in todo:
         if on_stage:
             on_stage("clouds")
-        occ, extra, xy_cm, rcs01, offsets, stats = build_clouds(cfg, readers, idx, progress)
+        occ, extra, xy_cm, rcs01, offsets, stats = build_clouds(cfg, readers, idx, progress, jobs)
         _save_npz(out / POINTS_FILE, config_hash=stage_hash(cfg, "clouds"), xy_cm=xy_cm,
                   rcs01=rcs01, offsets=offsets)  # fmt: skip
         write_json_atomic(out / "dpr.json", stats)

@@ -86,3 +86,15 @@ def test_prepare_errors(tmp_path, mini_dataroot, mini_config):
         prepare(bad, tmp_path, progress=False)
     with pytest.raises(DataError, match="does not exist"):
         load_prepared(tmp_path / "nope")
+
+
+def test_parallel_clouds_identical(mini_dataroot, mini_config, mini_prepared, tmp_path):
+    cfg = mini_config(mini_dataroot)
+    par = prepare(cfg, tmp_path, progress=False, jobs=2)
+    for name in ("images.npz", "points.npz"):
+        a, b = np.load(mini_prepared / name), np.load(par / name)
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k])
+    assert json.loads((par / "dpr.json").read_text()) == json.loads(
+        (mini_prepared / "dpr.json").read_text()
+    )
