@@ -52,7 +52,15 @@ from .models import ModelConfig, build_model
 # Train-config fields that may change between a run and its resumption: they do not alter what
 # the optimisation computes (epochs/patience only move the end, the rest are execution details).
 RESUMABLE_CHANGES = frozenset(
-    {"epochs", "patience", "device", "threads", "cache_batch_size", "micro_batch_size"}
+    {
+        "epochs",
+        "patience",
+        "time_budget_s",
+        "device",
+        "threads",
+        "cache_batch_size",
+        "micro_batch_size",
+    }
 )
 
 
@@ -85,6 +93,9 @@ class TrainConfig(StrictModel):
     deterministic: bool = True  # cuDNN deterministic kernels
     select_after_epoch: int = Field(25, ge=0)  # best checkpoint only for epochs > this
     patience: int = Field(5, ge=0)  # epochs without val R@1 gain before stopping; 0 = never
+    # Wall-clock budget of this call: no new epoch starts once it is spent (checked after each
+    # epoch, and only once an epoch past select_after_epoch exists, so a best checkpoint does).
+    time_budget_s: float | None = Field(None, gt=0)
     recall_ns: list[int] = Field(default_factory=lambda: [1, 5, 10, 20], min_length=1)
 
     @model_validator(mode="after")
@@ -495,7 +506,9 @@ def train(
         show = progress and is_main
         seed_everything(train_cfg.seed)
 
-        net = build_model(model_cfg).to(device)
+        # channels_last: oneDNN (CPU) and cuDNN (GPU) convolutions run faster in NHWC; measured
+        # 1.5-1.8x for a compact training step on 2 CPU threads.
+        net = build_model(model_cfg).to(device, memory_format=torch.channels_last)
         optimizer = torch.optim.SGD(
             net.parameters(),
             lr=train_cfg.lr,
@@ -551,6 +564,7 @@ def train(
             return db, tr, desc[len(desc) - len(val_frames) :]
 
         cache: tuple[torch.Tensor, torch.Tensor | None, torch.Tensor] | None = None
+        t_start = time.perf_counter()
         for epoch in range(start_epoch, train_cfg.epochs + 1):
             t0 = time.perf_counter()
             rng = _epoch_rng(train_cfg.seed, epoch)
@@ -683,6 +697,10 @@ def train(
                 torch.distributed.barrier()
             if train_cfg.patience and bad_epochs >= train_cfg.patience:
                 break
+            if _budget_spent(train_cfg, t_start, best_epoch, dist_info, device):
+                if show:
+                    tqdm.write(f"time budget of {train_cfg.time_budget_s:.0f} s spent: stopping")
+                break
         if best_epoch == 0:
             raise CheckpointError(f"{out_dir}: no epoch after select_after_epoch was validated")
         return TrainResult(
@@ -696,6 +714,20 @@ def train(
         torch.set_num_threads(threads_before)
         if dist_info.owns_group:
             torch.distributed.destroy_process_group()
+
+
+def _budget_spent(
+    cfg: TrainConfig, t_start: float, best_epoch: int, dist_info: _Dist, device: torch.device
+) -> bool:
+    """Whether the time budget is spent; rank 0 decides for all ranks (clocks differ)."""
+    if cfg.time_budget_s is None:
+        return False
+    spent = best_epoch > 0 and time.perf_counter() - t_start >= cfg.time_budget_s
+    if dist_info.active:
+        flag = torch.tensor([1.0 if spent else 0.0], device=device)
+        torch.distributed.broadcast(flag, src=0)
+        spent = bool(flag.item() > 0)
+    return spent
 
 
 def _load_resume_state(path: Path, model_cfg: ModelConfig, train_cfg: TrainConfig) -> dict:

@@ -370,3 +370,12 @@ def test_export_weights_writes_float16_checkpoint_and_json(data, full_run, tmp_p
     model, cfg, meta = load_model(weights, expect=TINY)
     assert meta["stored_dtype"] == "float16" and cfg == TINY
     assert all(p.dtype == torch.float32 for p in model.parameters())
+
+
+def test_time_budget_stops_after_the_first_selectable_epoch(data, full_run, tmp_path):
+    result, _ = full_run
+    cfg = TrainConfig(**{**FAST, "epochs": 8, "select_after_epoch": 1, "time_budget_s": 1e-3})
+    short = train(cfg, TINY, data, tmp_path, progress=False)
+    # the budget is spent at once, but epoch 2 (the first selectable one) still runs
+    assert [r["epoch"] for r in short.history] == [1, 2] and short.best_epoch == 2
+    assert short.history[1]["loss"] == pytest.approx(result.history[1]["loss"], rel=1e-5)
