@@ -18,10 +18,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+# Run as a script, this file's folder comes first on sys.path and its name would shadow the
+# place_recognition package.
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.modules.pop("place_recognition", None) if __name__ == "__main__" else None
 
 
 def throughput(preset: str, threads: int = 2, frames: int = 48, batch: int = 16) -> dict:

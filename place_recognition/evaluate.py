@@ -89,15 +89,24 @@ def descriptor_ranking(
     return Ranking(np.asarray(query_frames), db[res.indices], res.distances, res.distances)
 
 
-def apply_rcshr(data: PreparedData, ranking: Ranking, cfg: RerankConfig) -> Ranking:
+def _ranking_hists(data: PreparedData, ranking: Ranking, cfg: RerankConfig):
+    m = min(cfg.top_m, ranking.db_frames.shape[1])
+    cand = ranking.db_frames[:, :m]
+    frames = np.unique(np.concatenate([ranking.query_frames, cand.ravel()]))
+    if len(data.rcs) != len(data):
+        raise DataError(f"{data.root}: RCSHR needs the per-frame RCS values (points.npz)")
+    hists = rcs_histograms([data.rcs[i] for i in frames], cfg)
+    row_of = np.full(len(data), -1, np.int64)
+    row_of[frames] = np.arange(len(frames))
+    return frames, hists, row_of
+
+
+def apply_rcshr(data: PreparedData, ranking: Ranking, cfg: RerankConfig, _hists=None) -> Ranking:
     """Re-order each query's top-M (by the ranking's score) with the RCS histogram KL."""
     m = min(cfg.top_m, ranking.db_frames.shape[1])
     cand = ranking.db_frames[:, :m]
     dist = (ranking.distances if ranking.distances is not None else ranking.scores)[:, :m]
-    frames = np.unique(np.concatenate([ranking.query_frames, cand.ravel()]))
-    hists = rcs_histograms([data.rcs[i] for i in frames], cfg)
-    row_of = np.full(len(data), -1, np.int64)
-    row_of[frames] = np.arange(len(frames))
+    frames, hists, row_of = _hists if _hists is not None else _ranking_hists(data, ranking, cfg)
     out = rerank(row_of[cand], dist, hists[row_of[ranking.query_frames]], hists, cfg.alpha)
     return Ranking(ranking.query_frames, frames[out.indices], out.scores, out.distances)
 
@@ -126,7 +135,7 @@ def rcshr_grid() -> list[RerankConfig]:
     out = []
     for b_m in (0.0, 0.02, 0.04, 0.06):
         for b_w in (0.02, 0.04, 0.06, 0.08):
-            for alpha in (0.1, 0.2, 0.3, 0.41, 0.5, 0.6):
+            for alpha in (0.02, 0.05, 0.1, 0.2, 0.3, 0.41, 0.5, 0.7):
                 out.append(RerankConfig(bin_min=b_m, bin_width=b_w, alpha=alpha))
     return out
 
@@ -150,8 +159,12 @@ def tune_rcshr(
         raise DataError("empty RCSHR grid")
     base = data.is_positive(val_ranking.query_frames, val_ranking.db_frames[:, :1]).mean()
     best, best_key, trials = None, None, []
+    hist_cache: dict[tuple, tuple] = {}
     for cfg in grid:
-        r = apply_rcshr(data, val_ranking, cfg)
+        key = (cfg.bin_min, cfg.bin_width, cfg.epsilon, cfg.top_m)
+        if key not in hist_cache:
+            hist_cache[key] = _ranking_hists(data, val_ranking, cfg)
+        r = apply_rcshr(data, val_ranking, cfg, hist_cache[key])
         correct = data.is_positive(r.query_frames, r.db_frames[:, :5])
         r1 = float(correct[:, 0].mean())
         r5 = float(np.logical_or.accumulate(correct, axis=1)[:, -1].mean())
