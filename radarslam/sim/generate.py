@@ -92,6 +92,7 @@ class LogPlan:
     reversed: bool
     ego_speed_mps: float
     scene_windows: list[tuple[float, float]]
+    first_scene_number: int = 1  # scene names run scene-0001, scene-0002, ... over all logs
 
 
 def is_complete(dataroot: str | Path, version: str) -> bool:
@@ -203,6 +204,10 @@ def plan_logs(cfg: SimConfig, duration_s: float | None = None) -> list[LogPlan]:
                 windows,
             )
         )
+    number = 1
+    for p in plans:
+        p.first_scene_number = number
+        number += len(p.scene_windows)
     return plans
 
 
@@ -352,7 +357,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
     pad_rng = np.random.default_rng([seed, 606, plan.index])
     far = cfg.radar.far_range_m + 10.0
     for j, (ts, te) in enumerate(plan.scene_windows):
-        scene_no = plan.index * 1000 + j
+        scene_no = plan.first_scene_number + j
         scene_tok = make_token(seed, "scene", plan.index, j)
         n_smp = int(np.floor((te - ts - 0.1) / cfg.schedule.sample_period_s)) + 1
         t_smp = ts + 0.05 + np.arange(n_smp) * cfg.schedule.sample_period_s
