@@ -7,7 +7,9 @@
     python tools/train_weights.py --prepared outputs/place_recognition/city \
         --train paper --model compact_se_te --weights place_recognition/weights/compact.pt
     # quick proof run on the tiny preset (minutes on a CPU)
-    python tools/train_weights.py --simulate tiny --dataroot /tmp/tiny --set-train epochs=2 ...
+    python tools/train_weights.py --simulate demo --dataroot /tmp/demo --set-train epochs=2 ...
+    # several GPUs (DDP): prepare first, then
+    torchrun --nproc_per_node=8 tools/train_weights.py --prepared CACHE --train paper ...
 
 Steps:
   (a) the dataroot: generated with ``radarslam.sim`` when ``--simulate PRESET`` is given and the
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -164,6 +167,9 @@ def run(args) -> int:
     from place_recognition.train import load_train_config, train
     from radarslam.errors import ConfigError
 
+    rank = int(os.environ.get("RANK", "0"))
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and args.prepared is None:
+        raise ConfigError("under torchrun give --prepared (simulate and prepare once, beforehand)")
     t0 = time.perf_counter()
     if args.prepared is not None:
         prepared = args.prepared
@@ -195,6 +201,8 @@ def run(args) -> int:
     t1 = time.perf_counter()
     result = train(train_cfg, model_cfg, data, work, resume=args.resume, progress=not args.quiet)
     t_train = time.perf_counter() - t1
+    if rank != 0:
+        return 0  # rank 0 exports
     info = export_weights(
         result.best_checkpoint,
         data,
