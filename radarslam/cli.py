@@ -22,21 +22,20 @@ app = typer.Typer(
 
 # --- command registration (each module is light at import time) -------------------------------
 # BEGIN COMMANDS
-from radarslam.nuscenes import commands as _nuscenes_commands  # noqa: E402
-
-app.command("stats")(_nuscenes_commands.stats)
 from place_recognition.commands import pr_app  # noqa: E402
-
-app.add_typer(pr_app, name="pr")
-from radarslam.odometry import commands as _odometry_commands  # noqa: E402
-
-app.command("odometry")(_odometry_commands.odometry)
 from radarslam.eval import commands as _eval_commands  # noqa: E402
-
-app.command("eval")(_eval_commands.eval_command)
+from radarslam.nuscenes import commands as _nuscenes_commands  # noqa: E402
+from radarslam.odometry import commands as _odometry_commands  # noqa: E402
 from radarslam.sim import commands as _sim_commands  # noqa: E402
+from radarslam.slam import commands as _slam_commands  # noqa: E402
 
+app.command("demo")(_slam_commands.demo_command)
+app.command("run")(_slam_commands.run_command)
+app.command("eval")(_eval_commands.eval_command)
+app.command("odometry")(_odometry_commands.odometry)
 app.command("simulate")(_sim_commands.simulate_command)
+app.command("stats")(_nuscenes_commands.stats)
+app.add_typer(pr_app, name="pr")
 # END COMMANDS
 
 

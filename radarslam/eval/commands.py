@@ -28,9 +28,6 @@ def eval_command(
 ) -> None:
     """ATE / RPE / drift of odometry and SLAM side by side, loop precision/recall; writes
     RESULTS_DIR/metrics.json."""
-    from rich.console import Console
-    from rich.table import Table
-
     from radarslam.config import CONFIG_DIR, load_config
     from radarslam.eval.evaluate import EvalConfig, evaluate_results
 
@@ -40,6 +37,13 @@ def eval_command(
     cfg = load_config(EvalConfig, path, list(override or []))
     cfg.plots = plots
     report = evaluate_results(results_dir, cfg)
+    print_report(report, results_dir, cfg)
+
+
+def print_report(report, results_dir: Path, cfg) -> None:
+    """Rich tables of an :class:`~radarslam.eval.evaluate.EvalReport`."""
+    from rich.console import Console
+    from rich.table import Table
 
     console = Console()
     groups = [

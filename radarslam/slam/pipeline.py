@@ -57,6 +57,7 @@ class KeyFrame:
     ego_from_ref: np.ndarray
     relative: np.ndarray | None = None  # prev_ego_from_ego from the odometry
     relative_cov: np.ndarray | None = None
+    feature: object = None  # the place model's per-frame feature (encoded once, reused by t+1, t+2)
 
 
 @dataclass
@@ -278,8 +279,7 @@ class SlamPipeline:
     def _detect_loops(self, session: _Session, kf: KeyFrame, cloud) -> None:
         cfg = self.config.loops
         t0 = time.perf_counter()
-        seq = self._sequence_clouds(session, cloud)
-        desc, rcs = self.recognizer.describe(seq)
+        desc, rcs = self._describe(session, kf, cloud)
         candidates = []
         if kf.key.index - session.last_loop_kf > cfg.min_key_frames_between_loops:
             candidates = self.recognizer.query_descriptor(
@@ -294,11 +294,28 @@ class SlamPipeline:
             self._verify(session, kf, self._kf_by_key[cand.key], cand.descriptor_distance)
         self.timings.verification_s += time.perf_counter() - t1
 
-    def _sequence_clouds(self, session: _Session, cloud) -> list:
-        # Earlier clouds of the sequence (t-2, t-1) are kept on the key frames themselves.
-        n = getattr(self.recognizer, "seq_len", 1) or 1
-        past = [self._cloud_of(k) for k in session.key_frames[-n:-1]]
-        return [*past, cloud]
+    def _describe(self, session: _Session, kf: KeyFrame, cloud) -> tuple[np.ndarray, np.ndarray]:
+        """The key frame's AutoPlace descriptor over (t-2, t-1, t). Each key frame's image is
+        encoded once and its feature kept; only the temporal aggregation runs per key frame."""
+        rec = self.recognizer
+        model = getattr(rec, "model", None)
+        if not (hasattr(model, "encode_frames") and hasattr(model, "aggregate")):
+            past = [self._cloud_of(k) for k in session.key_frames[-rec.seq_len : -1]]
+            return rec.describe([*past, cloud])
+        import torch
+
+        from place_recognition.prepare import frame_from_cloud
+
+        frame = frame_from_cloud(cloud, image_cfg=rec.config.image)
+        image = frame.image.astype(np.float32)[None]
+        if image.shape[1] > 1:  # count / RCS channels are stored as 0..255
+            image[:, 1:] /= 255.0
+        with torch.no_grad():
+            kf.feature = model.encode_frames(torch.from_numpy(image).to(rec.config.device))[0]
+            seq = [k.feature for k in session.key_frames[-rec.seq_len :]]
+            seq = [seq[0]] * (rec.seq_len - len(seq)) + seq  # scene start: repeat the oldest
+            desc = model.aggregate(torch.stack(seq)[None])[0]
+        return desc.float().cpu().numpy(), frame.rcs01
 
     def _cloud_of(self, kf: KeyFrame):
         from radarslam.types import AccumulatedCloud

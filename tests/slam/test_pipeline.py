@@ -1,0 +1,200 @@
+"""The SLAM pipeline on the synthetic ``tiny`` dataroot (2 consecutive scenes of one log)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from radarslam.errors import CheckpointError, DataError
+from radarslam.geometry import invert, se2_to_matrix
+from radarslam.slam.config import SlamConfig
+from radarslam.slam.pipeline import SlamPipeline, load_recognizer
+from radarslam.slam.records import LoopCandidate, LoopVerification
+
+
+@pytest.fixture(scope="module")
+def reader(tiny_dataroot):
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    return NuScenesRadar(tiny_dataroot, "v1.0-mini")
+
+
+@pytest.fixture(scope="module")
+def scenes(reader):
+    names = [s.name for s in reader.scenes()]
+    assert len(names) == 2
+    return names
+
+
+@pytest.fixture(scope="module")
+def recognizer():
+    import torch
+
+    from place_recognition.models import build_model, load_model_config
+    from place_recognition.recognizer import PlaceRecognizer
+
+    torch.manual_seed(0)
+    return lambda: PlaceRecognizer(model=build_model(load_model_config("compact_se_te")).eval())
+
+
+@pytest.fixture(scope="module")
+def odometry_only(reader, scenes):
+    cfg = SlamConfig()
+    cfg.loops.enabled = False
+    return SlamPipeline(reader, cfg, progress=False).run(scenes)
+
+
+def test_without_loops_slam_is_the_odometry_chain(odometry_only, scenes):
+    res = odometry_only
+    assert [s.name for s in res.sessions] == scenes
+    assert res.loops == []
+    first = res.sessions[0]
+    # The first session starts on its first ground-truth pose; nothing else uses ground truth.
+    assert np.allclose(first.slam_poses[0][:2, 3], first.gt_poses[0][:2, 3], atol=1e-6)
+    for s in res.sessions:
+        assert np.allclose(s.slam_poses[:, :2, 3], s.odometry_poses[:, :2, 3], atol=1e-4)
+        assert len(s.timestamps_us) >= 15 and np.all(np.diff(s.timestamps_us) > 0)
+    # The second session never links: it is its own component, in its own (identity) frame.
+    assert len(res.components) == 2
+    second = res.sessions[1]
+    assert np.allclose(second.slam_poses[0], np.eye(4), atol=1e-6)
+
+
+def test_odometry_is_accurate_on_tiny(odometry_only):
+    from radarslam.eval.metrics import ate
+
+    for s in odometry_only.sessions:
+        assert ate(s.slam_poses, s.gt_poses).rmse_m < 0.5
+
+
+def test_loop_search_logs_every_candidate_with_a_reason(reader, scenes, recognizer):
+    cfg = SlamConfig()
+    cfg.loops.exclude_recent_s = 3.0  # tiny scenes are short: let the same pass be searched
+    pipeline = SlamPipeline(reader, cfg, recognizer=recognizer(), progress=False)
+    res = pipeline.run(scenes)
+    assert res.loops, "an untrained model still proposes candidates to verify"
+    for loop in res.loops:
+        assert loop.reason and (loop.reason == "ok") == loop.accepted
+        if loop.query.session == loop.candidate.session:
+            dt = loop.query_timestamp_us - loop.candidate_timestamp_us
+            assert dt >= 3.0e6
+    assert res.timings.key_frames == sum(len(s.timestamps_us) for s in res.sessions)
+    assert res.timings.place_recognition_s > 0 and res.static_map is not None
+
+
+class _ScriptedVerifier:
+    """Accepts what ``accept(pipeline, query, candidate)`` returns a pose for."""
+
+    def __init__(self, pipeline, accept):
+        self.pipeline = pipeline
+        self.accept = accept
+
+    def verify_candidate(self, query, candidate, tq, tc, distance, *_args):
+        pose = self.accept(self.pipeline, query, candidate)
+        ok = pose is not None
+        pose = np.eye(4) if pose is None else pose
+        ver = LoopVerification(
+            ok, "ok" if ok else "scripted reject", pose, 1.0, 0.1, 1.0, np.diag([1e2, 1e2, 1e3])
+        )
+        return LoopCandidate.from_verification(query, candidate, tq, tc, distance, ver), ver
+
+
+class _AllCandidates:
+    """A place recognizer stub returning every earlier key frame as a candidate."""
+
+    seq_len = 1
+    model = None
+
+    def __init__(self):
+        self.keys = []
+
+    def describe(self, seq):
+        return np.zeros(4, np.float32), np.zeros(1, np.float32)
+
+    def query_descriptor(self, desc, rcs, k, exclude):
+        from place_recognition.recognizer import PlaceCandidate
+
+        keys = [key for key in self.keys if not exclude(key)]
+        return [PlaceCandidate(key, 0.1, 0.1, r) for r, key in enumerate(keys[-k:])]
+
+    def add_descriptor(self, desc, rcs, key):
+        self.keys.append(key)
+
+    @property
+    def config(self):
+        from place_recognition.config import PlaceRecognizerConfig
+
+        return PlaceRecognizerConfig()
+
+
+def _run_scripted(reader, accept):
+    scenes = [s.name for s in reader.scenes()]
+    cfg = SlamConfig()
+    cfg.loops.num_candidates = 50
+    cfg.loops.min_key_frames_between_loops = 0
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    pipeline.verifier = _ScriptedVerifier(pipeline, accept)
+    return pipeline.run(scenes)
+
+
+def _true_pose(pipeline, query, candidate):
+    kfs = pipeline._kf_by_key
+    return invert(kfs[candidate].gt_pose) @ kfs[query].gt_pose
+
+
+def _is_link_pair(pipeline, query, candidate, max_query_index):
+    first, second = list(pipeline.sessions)
+    last = pipeline.sessions[first].key_frames[-1].key
+    return query.session == second and query.index <= max_query_index and candidate == last
+
+
+def test_session_joins_the_map_once_loops_agree(reader):
+    # The second session's key frames 0..2 are "recognised" against the first session's last key
+    # frame with the true relative pose: the session must then be placed where it really is.
+    def accept(pipeline, q, c):
+        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 2) else None
+
+    res = _run_scripted(reader, accept)
+    assert len(res.components) == 1
+    assert len(res.accepted_loops) == 3
+    second = res.sessions[1]
+    err = np.linalg.norm(second.slam_poses[:, :2, 3] - second.gt_poses[:, :2, 3], axis=1)
+    assert err.max() < 1.0, "the linked session lies on its ground truth"
+
+
+def test_inconsistent_link_votes_are_rejected(reader):
+    # Three votes agree, the first is off by 40 m (a perceptual-aliasing false loop).
+    def accept(pipeline, q, c):
+        if not _is_link_pair(pipeline, q, c, 3):
+            return None
+        pose = _true_pose(pipeline, q, c)
+        return pose @ se2_to_matrix(40.0, 0.0, 0.0) if q.index == 0 else pose
+
+    res = _run_scripted(reader, accept)
+    rejected = [lp for lp in res.loops if lp.reason == "inconsistent with the session link"]
+    assert [lp.query.index for lp in rejected] == [0]
+    assert len(res.components) == 1
+    second = res.sessions[1]
+    err = np.linalg.norm(second.slam_poses[:, :2, 3] - second.gt_poses[:, :2, 3], axis=1)
+    assert err.max() < 1.0
+
+
+def test_a_single_vote_does_not_link(reader):
+    def accept(pipeline, q, c):
+        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 0) else None
+
+    res = _run_scripted(reader, accept)
+    assert len(res.components) == 2
+    reasons = [lp.reason for lp in res.loops if lp.accepted or "link" in lp.reason]
+    assert reasons == ["too few consistent loops to link the session"]
+
+
+def test_bad_inputs_are_clear_errors(reader, tmp_path):
+    cfg = SlamConfig()
+    cfg.loops.enabled = False
+    with pytest.raises(DataError, match="scene-9999"):
+        SlamPipeline(reader, cfg, progress=False).run(["scene-9999"])
+    with pytest.raises(DataError, match="no scene"):
+        SlamPipeline(reader, cfg, progress=False).run([])
+    with pytest.raises(CheckpointError, match=r"missing\.pt"):
+        load_recognizer(str(tmp_path / "missing.pt"), None)
