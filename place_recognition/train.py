@@ -91,6 +91,9 @@ class TrainConfig(StrictModel):
     # threshold decisions amplify last-bit differences into different triplets a few epochs on.
     threads: int | None = Field(None, ge=1)
     deterministic: bool = True  # cuDNN deterministic kernels
+    # bfloat16 autocast of the forward passes on CUDA (loss, mining and the optimiser stay in
+    # float32); ignored on CPU, where bf16 convolutions are slower than float32.
+    amp_bf16: bool = False
     select_after_epoch: int = Field(25, ge=0)  # best checkpoint only for epochs > this
     patience: int = Field(5, ge=0)  # epochs without val R@1 gain before stopping; 0 = never
     # Wall-clock budget of this call: no new epoch starts once it is spent (checked after each
@@ -111,6 +114,8 @@ class TrainConfig(StrictModel):
             or (self.device.startswith("cuda:") and self.device[5:].isdigit())
         ):
             raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
+        if self.amp_bf16 and self.device == "cpu":
+            raise ValueError("amp_bf16 needs a CUDA device (device is 'cpu')")
         if 1 not in self.recall_ns or any(n < 1 for n in self.recall_ns):
             raise ValueError(f"recall_ns must be positive and contain 1, got {self.recall_ns}")
         return self
@@ -204,6 +209,12 @@ def _unwrap(model: torch.nn.Module) -> torch.nn.Module:
     return model.module if hasattr(model, "module") else model
 
 
+def _autocast(device: torch.device, enabled: bool):
+    if enabled and device.type == "cuda":
+        return torch.autocast(device_type="cuda", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
 # --------------------------------------------------------------------------------------------
 # Data access
 
@@ -288,6 +299,7 @@ def _descriptors(
     batch_size: int,
     progress: bool = False,
     desc: str = "descriptors",
+    amp: bool = False,
 ) -> torch.Tensor:
     """(M, D) descriptors on the store's device; every distinct frame is encoded once."""
     from tqdm.auto import tqdm
@@ -300,7 +312,7 @@ def _descriptors(
     was_training = net.training
     net.eval()
     try:
-        with torch.no_grad():
+        with torch.no_grad(), _autocast(store.device, amp):
             feats = torch.empty((len(frames), net.cfg.frame_feature_dim()), device=store.device)
             starts = range(0, len(frames), batch_size)
             for s in tqdm(starts, desc=desc, disable=not progress, leave=False, unit="batch"):
@@ -430,6 +442,7 @@ def _triplet_step_loss(
     seq_len: int,
     margin: float,
     total_negatives: int,
+    amp: bool = False,
 ) -> torch.Tensor:
     """Loss of some triplets (sum over (q, p, n_i)) / ``total_negatives`` of the whole batch."""
     frames_per_trip = [np.concatenate(([t.query, t.positive], t.negatives)) for t in triplets]
@@ -437,7 +450,9 @@ def _triplet_step_loss(
     seqs = np.asarray(sequences)[seq_frames][:, -seq_len:]
     uniq, inverse = np.unique(seqs, return_inverse=True)
     seq_index = torch.from_numpy(inverse.reshape(seqs.shape).astype(np.int64)).to(store.device)
-    desc = model(store.get(uniq), seq_index)
+    with _autocast(store.device, amp):
+        desc = model(store.get(uniq), seq_index)
+    desc = desc.float()
     anchors, positives, negatives = [], [], []
     offset = 0
     for t in triplets:
@@ -557,7 +572,7 @@ def train(
             parts = [db_frames, *([train_frames] if with_train else []), val_frames]
             desc = _descriptors(
                 model, store, sequences, np.concatenate(parts), train_cfg.cache_batch_size,
-                progress=show, desc="cache",
+                progress=show, desc="cache", amp=train_cfg.amp_bf16,
             )  # fmt: skip
             db = desc[:n_db]
             tr = desc[n_db : n_db + n_train] if with_train else None
@@ -627,7 +642,7 @@ def train(
                     with ctx:
                         loss = _triplet_step_loss(
                             model, store, sequences, chunk, model_cfg.seq_len,
-                            train_cfg.margin, total_neg,
+                            train_cfg.margin, total_neg, amp=train_cfg.amp_bf16,
                         )  # fmt: skip
                         loss.backward()
                     batch_loss += float(loss.detach())

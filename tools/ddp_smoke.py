@@ -152,6 +152,7 @@ def smoke_train(args) -> dict:
         micro_batch_size=args.micro_batch,
         cache_batch_size=args.cache_batch,
         deterministic=False,
+        amp_bf16=args.amp,
     )
     t0 = time.perf_counter()
     result = train(train_cfg, model_cfg, data, args.out, progress=rank == 0 and args.progress)
@@ -161,6 +162,7 @@ def smoke_train(args) -> dict:
         "device": args.device,
         "cuda": torch.cuda.is_available(),
         "preset": args.preset,
+        "amp_bf16": args.amp,
         "seconds": round(time.perf_counter() - t0, 1),
         "best_epoch": result.best_epoch,
         "best_recall_at_1": result.best_recall_at_1,
@@ -192,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--cache-batch", type=int, default=32)
     t.add_argument("--device", default="auto")
     t.add_argument("--out", type=Path, default=Path("/tmp/autoplace_smoke"))
+    t.add_argument("--amp", action="store_true", help="bfloat16 autocast (CUDA)")
     t.add_argument("--progress", action="store_true")
     t.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
