@@ -63,6 +63,10 @@ class TrafficConfig(StrictModel):
     car_speed_mps: tuple[float, float] = (7.0, 13.0)
     cyclist_speed_mps: tuple[float, float] = (3.0, 6.0)
     pedestrian_speed_mps: tuple[float, float] = (0.9, 1.7)
+    route_density_per_km: float = Field(
+        0.0, ge=0
+    )  # extra cars on the ego's own route, per direction (dense traffic / jams)
+    signals: bool = True  # False: every light green (free-flowing dense traffic)
     light_cycle_s: tuple[float, float] = (45.0, 75.0)
     warmup_s: float = Field(60.0, ge=0)
     region_margin_m: float = Field(300.0, ge=50)

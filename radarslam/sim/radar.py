@@ -136,7 +136,7 @@ def box_scatterers(boxes: Boxes, rng: np.random.Generator):
                 normal,
                 np.deg2rad(np.tile(_CAR_PTS[:, 4], len(idx))),
                 np.tile(_CAR_PTS[:, 5], len(idx)),
-                np.full(m, 0.55),
+                np.full(m, 0.75),
                 np.full(m, 0.05),
             )
         )

@@ -230,10 +230,30 @@ def simulate_traffic(
                 build_path(net, seq, offset, r_right, r_left, facade_offset_m - 0.5, start)
             )
             cls_list.append(cls)
+    if ego_route is not None and tcfg.route_density_per_km > 0:
+        # Dense traffic around the ego: cars entering its route (same way and oncoming).
+        pts = net.nodes[ego_route]
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        km_route = float(seg[: max(len(seg) * 2 // 3, 1)].sum()) / 1000.0
+        for rev in (False, True):
+            seq_all = ego_route[::-1] if rev else ego_route
+            n_edges = len(seq_all) - 1
+            for _ in range(int(rng.poisson(tcfg.route_density_per_km * km_route))):
+                i = int(rng.integers(n_edges // 3 if rev else 0, max(n_edges * 2 // 3, 1)))
+                seq = seq_all[i:]
+                if len(seq) < 2:
+                    continue
+                pts_s = net.nodes[seq]
+                if np.linalg.norm(np.diff(pts_s, axis=0), axis=1).sum() < 300.0:
+                    seq = random_walk(net, rng, (seq[-2], seq[-1]), 2000.0)
+                elen = float(np.linalg.norm(net.nodes[seq[1]] - net.nodes[seq[0]]))
+                start = float(rng.uniform(0, max(elen - 2 * facade_offset_m, 1.0)))
+                specs.append(build_path(net, seq, 1.75, 7.0, 12.0, facade_offset_m - 0.5, start))
+                cls_list.append(MOVING_CAR)
     paths = PathSet.from_specs(specs)
     ego_index = 0 if ego_route is not None else None
     params = _params(cls_list, rng, tcfg, ego_cfg, ego_v0 if ego_route is not None else None)
-    return _run(net, paths, params, ego_cfg, t0, t_end_s + 2.0, dt, ego_index)
+    return _run(net, paths, params, ego_cfg, t0, t_end_s + 2.0, dt, ego_index, tcfg.signals)
 
 
 def _run(
@@ -245,6 +265,7 @@ def _run(
     t_end: float,
     dt: float,
     ego_index: int | None,
+    signals: bool = True,
 ) -> TrafficSim:
     n = len(p.cls)
     steps = int(np.ceil((t_end - t0) / dt)) + 1
@@ -286,6 +307,7 @@ def _run(
         jc = np.minimum(j, max(len(paths.stop_s) - 1, 0))
         if len(paths.stop_s):
             valid = (j < len(paths.stop_s)) & (paths.stop_path[jc] == agent_ids) & p.obey_lights
+            valid &= signals
             node = paths.stop_node[jc]
             cyc = net.light_cycle_s[node]
             tau = (t + net.light_phase_s[node]) % cyc

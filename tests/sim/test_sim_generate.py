@@ -221,3 +221,20 @@ def test_tum_trajectory_is_followed_exactly(tmp_path):
     yaw_p = 2 * np.arctan2(q[:, 3], q[:, 0])
     tangent = np.arctan2(xy[:, 1] - cy, xy[:, 0] - cx) + np.pi / 2
     assert np.abs((yaw_p - tangent + np.pi) % (2 * np.pi) - np.pi).max() < 2e-3
+
+
+def _moving_fraction(root: Path, channel: str = "RADAR_FRONT") -> float:
+    sds = [r for r in _table(root, "sample_data") if f"/{channel}/" in r["filename"]]
+    pts = np.concatenate([read_pcd(root / r["filename"]) for r in sds])
+    keep = (pts["invalid_state"] == 0) & (pts["ambig_state"] == 3) & (pts["dyn_prop"] <= 6)
+    xy = np.column_stack([pts["x"], pts["y"]]).astype(np.float64)
+    u = xy / np.linalg.norm(xy, axis=1, keepdims=True)
+    vr = np.abs(u[:, 0] * pts["vx_comp"] + u[:, 1] * pts["vy_comp"])
+    return float(np.mean(vr[keep] > 0.5))
+
+
+def test_dense_traffic_knob_raises_the_moving_fraction(tiny_dataroot, sim_dataroot):
+    dense = sim_dataroot([SHORT[0], "traffic.route_density_per_km=60", "traffic.signals=false"])
+    base = _moving_fraction(tiny_dataroot)
+    busy = _moving_fraction(dense)
+    assert base < 0.12 and busy > 2 * base and busy > 0.12
