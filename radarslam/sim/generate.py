@@ -393,7 +393,8 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
         for m in mounts:
             ch = m.channel
             t_all = clocks[ch]
-            t_sw = t_all[(t_all >= ts) & (t_all < te)]
+            # Sweeps from just before the first key frame to half a sample period after the last.
+            t_sw = t_all[(t_all >= t_smp[0] - 0.05) & (t_all < t_smp[-1] + 0.25)]
             t_sw = np.array(
                 [
                     t
@@ -418,7 +419,6 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
             sd_tok = [
                 make_token(seed, "sample_data", plan.index, j, ch, k) for k in range(len(t_sw))
             ]
-            key_idx = sorted(key_of)
             chunk = 13  # ~1 s of sweeps share one pre-culled view of the static world
             for k, t in enumerate(t_sw):
                 if k % chunk == 0:
@@ -432,17 +432,9 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                     sw = SweepWorld(*view, boxes)
                     pts = model.sweep(sw, sxy[k], float(syaw[k]), v_s[k], rng)
                 is_key = k in key_of
-                if is_key:
-                    sample_tok = smp_tok[key_of[k]]
-                else:
-                    nxt = [q for q in key_idx if q > k]
-                    sample_tok = (
-                        smp_tok[key_of[nxt[0]]]
-                        if nxt
-                        else smp_tok[key_of[key_idx[-1]]]
-                        if key_idx
-                        else smp_tok[int(np.argmin(np.abs(t_smp - t)))]
-                    )
+                # Non-key sweeps point to the sample nearest in time (as nuScenes does).
+                i_smp = key_of[k] if is_key else int(np.argmin(np.abs(t_smp - t)))
+                sample_tok = smp_tok[i_smp]
                 folder = "samples" if is_key else "sweeps"
                 rel = f"{folder}/{ch}/{plan.name}__{ch}__{ts_us}.pcd"
                 pad = int(

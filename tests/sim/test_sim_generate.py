@@ -89,6 +89,8 @@ def test_layout_and_tables(tiny_dataroot):
             key_channels[r["sample_token"]].add(m.group(2))
             # The key frame is the sweep of that radar nearest the sample time (13 Hz).
             assert abs(r["timestamp"] - by_sample[r["sample_token"]]["timestamp"]) < 40_000
+        else:  # a sweep belongs to the sample nearest in time
+            assert abs(r["timestamp"] - by_sample[r["sample_token"]]["timestamp"]) <= 260_000
         if r["next"]:
             nxt = sd_by_tok[r["next"]]
             assert nxt["prev"] == r["token"]
