@@ -15,6 +15,7 @@ longer carry their sensor's line of sight): :meth:`PlaceRecognizer.cloud_from_re
 from __future__ import annotations
 
 import json
+from collections import OrderedDict
 from collections.abc import Callable, Collection, Hashable
 from dataclasses import dataclass
 from pathlib import Path
@@ -92,6 +93,11 @@ class PlaceRecognizer:
         self._hists: list[np.ndarray] = []
         self._rcs: list[np.ndarray] = []
         self._index: DescriptorIndex | None = None
+        # Per-frame features of the most recent clouds: in a SLAM loop each key frame enters
+        # seq_len consecutive sequences and only its first use needs the CNN.
+        self._feature_cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._cache_size = 4 * self.seq_len
+        self._split_model = hasattr(model, "encode_frames") and hasattr(model, "aggregate")
 
     # ---- inputs ------------------------------------------------------------------------------
     def cloud_from_reader(self, reader, sample_token: str) -> AccumulatedCloud:
@@ -126,25 +132,70 @@ class PlaceRecognizer:
             f"got {type(item).__name__}"
         )
 
-    def _frames(self, frame_or_cloud) -> list:
+    def _items(self, frame_or_cloud) -> list:
         items = (
             list(frame_or_cloud) if isinstance(frame_or_cloud, (list, tuple)) else [frame_or_cloud]
         )
         if not items:
             raise DataError("empty frame sequence")
-        frames = [self._frame(it) for it in items][-self.seq_len :]
-        while len(frames) < self.seq_len:
-            frames.insert(0, frames[0])
-        return frames
+        items = items[-self.seq_len :]
+        while len(items) < self.seq_len:
+            items.insert(0, items[0])
+        return items
+
+    @staticmethod
+    def _cache_key(item) -> tuple | None:
+        if isinstance(item, AccumulatedCloud) and item.sample_token:
+            return (item.sample_token, item.timestamp_us, len(item.points), item.ref_channel)
+        return None
+
+    @staticmethod
+    def _image(frame) -> np.ndarray:
+        img = frame.image.astype(np.float32)  # (C, H, W)
+        if img.shape[0] > 1:
+            img[1:] /= 255.0
+        return img
 
     def describe(self, frame_or_cloud) -> tuple[np.ndarray, np.ndarray]:
         """(descriptor (D,) float32, current-frame RCS values in [0, 1])."""
-        frames = self._frames(frame_or_cloud)
-        stack = np.stack([f.image for f in frames]).astype(np.float32)  # (L, C, H, W)
-        if stack.shape[1] > 1:
-            stack[:, 1:] /= 255.0
-        desc = self._run_model(stack[None])[0]
-        return desc, frames[-1].rcs01
+        items = self._items(frame_or_cloud)
+        last = self._frame(items[-1])
+        if not self._split_model:
+            frames = [self._frame(it) for it in items[:-1]] + [last]
+            stack = np.stack([self._image(f) for f in frames])  # (L, C, H, W)
+            return self._run_model(stack[None])[0], last.rcs01
+        feats = []
+        for pos, it in enumerate(items):
+            key = self._cache_key(it)
+            if key is not None and key in self._feature_cache:
+                self._feature_cache.move_to_end(key)
+                feats.append(self._feature_cache[key])
+                continue
+            frame = last if pos == len(items) - 1 else self._frame(it)
+            f = self._encode(self._image(frame)[None])[0]
+            if key is not None:
+                self._feature_cache[key] = f
+                while len(self._feature_cache) > self._cache_size:
+                    self._feature_cache.popitem(last=False)
+            feats.append(f)
+        return self._aggregate(np.stack(feats)[None])[0], last.rcs01
+
+    def _encode(self, images: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            out = self.model.encode_frames(torch.from_numpy(images).to(self.config.device))
+        return out.detach().float().cpu().numpy()
+
+    def _aggregate(self, feats: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            out = self.model.aggregate(torch.from_numpy(feats).to(self.config.device))
+        out = out.detach().float().cpu().numpy()
+        if out.ndim != 2 or not np.all(np.isfinite(out)):
+            raise CheckpointError(f"model returned {out.shape} (non-finite or wrong shape)")
+        return out.astype(np.float32)
 
     def _run_model(self, batch: np.ndarray) -> np.ndarray:
         import torch

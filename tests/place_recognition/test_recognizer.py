@@ -86,3 +86,25 @@ def test_temporal_padding(clouds):
     d2, _ = rec.describe([clouds[0][1][-1]] * 3)
     np.testing.assert_allclose(d1, d2)
     assert rcs.min() == 0.0 and rcs.max() == 1.0
+
+
+def test_frame_feature_cache_matches_full_model(clouds):
+    """With a split model (encode_frames + aggregate), cached per-frame features give the same
+    descriptor as the model's forward on the whole sequence."""
+    from place_recognition.models import build_model, load_model_config
+
+    torch.manual_seed(0)
+    cfg = load_model_config("compact_se_te").model_copy(update={"seq_len": 2})
+    model = build_model(cfg).eval()
+    rec = PlaceRecognizer(model=model, config=PlaceRecognizerConfig())
+    assert rec.seq_len == 2
+    seq = clouds[3][1]
+    d_first, _ = rec.describe(seq)
+    assert len(rec._feature_cache) == 2
+    d_cached, _ = rec.describe(seq)  # both frames from the cache
+    frames = [rec._frame(c) for c in seq]
+    x = torch.from_numpy(np.stack([rec._image(f) for f in frames])[None])
+    with torch.no_grad():
+        full = model(x).numpy()[0]
+    np.testing.assert_allclose(d_first, full, atol=1e-5)
+    np.testing.assert_array_equal(d_first, d_cached)
