@@ -207,3 +207,12 @@ def test_frame_static_ego_and_empty_frames():
     one["x"], one["vx"], one["ambig_state"] = 10.0, -5.0, 3
     single = DopplerEstimator().fit_frame([make_sweep("RADAR_FRONT", one)])
     assert not single.valid and np.all(np.isfinite(single.covariance))
+
+
+def test_joint_fit_with_relative_threshold():
+    rng = np.random.default_rng(13)
+    v, w = np.array([12.0, 0.0]), -0.15
+    frame = make_frame(rng, v, w, moving_fraction=0.3, sigma_vr_mps=0.3)
+    fit = DopplerEstimator(DopplerConfig(relative_threshold=0.15)).fit_frame(frame)
+    assert fit.valid and np.linalg.norm(fit.velocity_mps - v) < 0.1
+    assert abs(fit.yaw_rate_radps - w) < 0.03
