@@ -22,7 +22,7 @@ from radarslam.nuscenes.pcd import pcd_bytes
 from radarslam.sim.config import SimConfig, load_sim_config
 from radarslam.sim.ego import TumEgo, canonical_routes, extend_route, read_tum
 from radarslam.sim.radar import NUSCENES_MOUNTS, RadarModel, SweepWorld, box_scatterers
-from radarslam.sim.traffic import EgoMotion, simulate_traffic
+from radarslam.sim.traffic import EGO_START_S, EgoMotion, simulate_traffic
 from radarslam.sim.world import (
     Scatterers,
     StaticWorld,
@@ -287,10 +287,23 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
             world.network, route_rng, cfg.schedule.n_routes, cfg.schedule.route_length_m
         )
         route = routes[plan.route_index]
+        pts = world.network.nodes[route]
+        cum = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        fo = world.config.facade_offset_m
+        start_along = fo
         if plan.reversed:
-            route = route[::-1]
-        # Logs of one route enter it at different points: overlapping, not identical, sections.
-        route = route[int(rng.integers(0, max(len(route) // 3, 1))) :]
+            # Drive back over the section the forward logs drive (revisits the other way).
+            # (the ego rolls EGO_START_S before time 0 in both logs)
+            expected = 4.5 * (t_end + 2 * EGO_START_S) * rng.uniform(0.9, 1.1)
+            k = min(max(int(np.searchsorted(cum, expected)), 1), len(route) - 1)
+            edge = cum[k] - cum[k - 1]
+            start_along = float(np.clip(cum[k] - expected, fo, max(edge - fo - 5.0, fo)))
+            route = route[: k + 1][::-1]
+        else:
+            # Logs of one route enter it at different points: overlapping, not identical.
+            # The first log of a route starts at its beginning (where reversed logs end).
+            first = plan.index < cfg.schedule.n_routes
+            route = route[0 if first else int(rng.integers(0, max(len(route) // 4, 1))) :]
         need = cfg.ego.max_speed_mps * (t_end + 10.0) + 300.0
         route = extend_route(world.network, rng, route, need)
         pts = world.network.nodes[route]
@@ -311,7 +324,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
             rng,
             t_end,
             route,
-            world.config.facade_offset_m,
+            start_along,
             ego_v0,
             world.config.facade_offset_m,
             region,

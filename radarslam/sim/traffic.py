@@ -18,6 +18,8 @@ from radarslam.sim.paths import PathSet, PathSpec, build_path
 from radarslam.sim.world import CYCLIST, MOVING_CAR, PEDESTRIAN, Boxes, StreetNetwork
 
 _LANE_CLASS = {MOVING_CAR: 0, CYCLIST: 1, PEDESTRIAN: 2}
+#: The ego starts driving this many seconds before the drive's time 0 (first scene ~1-3 s later).
+EGO_START_S = 10.0
 
 
 def random_walk(
@@ -350,6 +352,8 @@ def _run(
         acc = np.clip(acc, -7.0, p.a_max)
         if ego_index is not None:
             td = t
+            if t < -EGO_START_S:  # the ego waits while the traffic warms up
+                acc[ego_index] = -v[ego_index] / dt
             for stop in stops:
                 if stop.at_s <= td < stop.at_s + stop.duration_s:
                     acc[ego_index] = -ego_cfg.comfort_decel_mps2

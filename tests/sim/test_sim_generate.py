@@ -240,3 +240,25 @@ def test_dense_traffic_knob_raises_the_moving_fraction(tiny_dataroot, sim_dataro
     base = _moving_fraction(tiny_dataroot)
     busy = _moving_fraction(dense)
     assert base < 0.12 and busy > 2 * base and busy > 0.12
+
+
+def test_logs_on_different_days_revisit_streets_in_both_directions(sim_dataroot):
+    root = sim_dataroot(
+        ["schedule.n_logs=2", "schedule.n_days=5", "schedule.scenes_per_log=1",
+         "traffic.warmup_s=10.0"]
+    )  # fmt: skip
+    logs = _table(root, "log")
+    assert len({lg["date_captured"] for lg in logs}) == 2
+    poses = {p["token"]: p for p in _table(root, "ego_pose")}
+    tracks: dict[str, list] = {lg["logfile"]: [] for lg in logs}
+    for r in _table(root, "sample_data"):
+        p = poses[r["ego_pose_token"]]
+        q = p["rotation"]
+        yaw = 2 * np.arctan2(q[3], q[0])
+        tracks[r["filename"].split("/")[2].split("__")[0]].append((*p["translation"][:2], yaw))
+    a, b = (np.array(t) for t in tracks.values())
+    d = np.linalg.norm(a[:, None, :2] - b[None, :, :2], axis=-1)
+    close = np.argwhere(d < 4.0)
+    assert len(close) > 0, "the two logs never drive the same street"
+    dyaw = np.abs((a[close[:, 0], 2] - b[close[:, 1], 2] + np.pi) % (2 * np.pi) - np.pi)
+    assert np.mean(dyaw > 2.6) > 0.8  # the second log drives it the other way round
