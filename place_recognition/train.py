@@ -33,6 +33,7 @@ import math
 import os
 import random
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -598,11 +599,9 @@ def train(
                 train_cfg,
                 rng,
             )
-            if not triplets:
-                raise DataError(
-                    f"{root}: epoch {epoch}: no train query had a positive and a margin-violating "
-                    "negative (check the split radii)"
-                )
+            # No triplet at all (every query already separates its negatives by the margin) is
+            # a legitimate, converged state on easy data: the epoch then makes no step but is
+            # still validated and counted for selection, patience and the LR schedule.
             # The order is the DistributedSampler's (seeded by seed + epoch) in both modes, so a
             # one-process DDP run is step-for-step the plain run.
             from torch.utils.data import DistributedSampler
@@ -649,7 +648,11 @@ def train(
                 optimizer.step()
                 losses.append(batch_loss)
                 bar.set_postfix(loss=f"{batch_loss:.4f}")
-            scheduler.step()
+            with warnings.catch_warnings():
+                # An epoch without triplets makes no optimiser step; the per-epoch schedule must
+                # still advance (torch warns about the order, which does not matter for StepLR).
+                warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step")
+                scheduler.step()
 
             more = epoch < train_cfg.epochs
             cache = cache_pass(with_train=more)
@@ -661,10 +664,12 @@ def train(
             record = {
                 "epoch": epoch,
                 "lr": lr_epoch,
-                "loss": float(np.mean(losses)),
+                "loss": float(np.mean(losses)) if losses else None,
                 "triplets": len(triplets),
                 "skipped_queries": skipped,
-                "mean_negatives": float(np.mean([len(t.negatives) for t in triplets])),
+                "mean_negatives": float(np.mean([len(t.negatives) for t in triplets]))
+                if triplets
+                else 0.0,
                 **{f"val_recall@{n}": v for n, v in recalls.items()},
                 "seconds": round(time.perf_counter() - t0, 2),
             }
@@ -703,7 +708,8 @@ def train(
                 write_json_atomic(out_dir / "history.json", history)
                 if show:
                     tqdm.write(
-                        f"epoch {epoch}: loss {record['loss']:.4f}, triplets {len(triplets)} "
+                        f"epoch {epoch}: loss {record['loss'] or 0.0:.4f}, "
+                        f"triplets {len(triplets)} "
                         f"(skipped {skipped}), val R@1 {r1:.3f}"
                         + (" *best*" if improved else "")
                         + f", {record['seconds']:.1f} s"

@@ -40,7 +40,9 @@ sys.path.insert(0, str(REPO))
 DEFAULT_WEIGHTS = REPO / "place_recognition" / "weights" / "compact.pt"
 
 
-def git_state() -> dict[str, Any]:
+def git_state(commit_override: str | None = None) -> dict[str, Any]:
+    """Commit of the code that runs; ``commit_override`` for copies of the tree without .git."""
+
     def run(*cmd: str) -> str | None:
         try:
             out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=10)
@@ -48,8 +50,11 @@ def git_state() -> dict[str, Any]:
             return None
         return out.stdout.strip() if out.returncode == 0 else None
 
-    status = run("git", "status", "--porcelain", "--", "place_recognition", "configs")
-    return {"commit": run("git", "rev-parse", "HEAD"), "dirty": bool(status)}
+    commit = run("git", "rev-parse", "HEAD")
+    if commit is None or commit_override:
+        return {"commit": commit_override, "dirty": None, "source": "--git-commit"}
+    status = run("git", "status", "--porcelain", "--", "place_recognition", "configs", "tools")
+    return {"commit": commit, "dirty": bool(status), "source": "git"}
 
 
 def validation_recall(model, data, ns: list[int], batch_size: int, device: str) -> dict[int, float]:
@@ -72,6 +77,7 @@ def export_weights(
     extra: dict[str, Any] | None = None,
     device: str = "cpu",
     batch_size: int = 32,
+    git_commit: str | None = None,
 ) -> dict[str, Any]:
     """Re-save ``checkpoint`` with float16 weights at ``weights`` plus a JSON; returns the JSON."""
     from place_recognition.checkpoint import load_model, read_checkpoint, save_checkpoint
@@ -97,7 +103,7 @@ def export_weights(
             "pos_radius_m": float(data.pos_radius_m),
             "neg_radius_m": float(data.neg_radius_m),
         },
-        "git": git_state(),
+        "git": git_state(git_commit),
         "trained_at_commit": meta.get("git_commit"),
         "python": platform.python_version(),
         **(extra or {}),
@@ -150,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     trn.add_argument("--resume", action="store_true", help="continue WORK/last.pt")
     trn.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS, help="exported .pt")
+    parser.add_argument("--git-commit", help="record this commit (a tree copied without .git)")
     args = parser.parse_args(argv)
 
     from radarslam.errors import RadarSlamError
@@ -213,6 +220,7 @@ def run(args) -> int:
             "command": " ".join(sys.argv),
         },
         device="cpu",
+        git_commit=args.git_commit,
     )
     print(
         f"[train_weights] wrote {args.weights} ({info['size_bytes'] / 1e6:.2f} MB): best epoch "

@@ -379,3 +379,18 @@ def test_time_budget_stops_after_the_first_selectable_epoch(data, full_run, tmp_
     # the budget is spent at once, but epoch 2 (the first selectable one) still runs
     assert [r["epoch"] for r in short.history] == [1, 2] and short.best_epoch == 2
     assert short.history[1]["loss"] == pytest.approx(result.history[1]["loss"], rel=1e-5)
+
+
+def test_epochs_without_triplets_still_validate(data, tmp_path):
+    import dataclasses
+
+    # no database frame lies beyond the negative radius: every query is skipped, which is a
+    # state of the data (or of a converged model), not an error; the epoch is still validated
+    far = dataclasses.replace(data, neg_radius_m=1000.0)
+    cfg = TrainConfig(**{**FAST, "epochs": 2})
+    result = train(cfg, TINY, far, tmp_path, progress=False)
+    assert [r["triplets"] for r in result.history] == [0, 0]
+    assert all(r["loss"] is None and r["skipped_queries"] == 57 for r in result.history)
+    # no step was taken: validation equals that of the initial weights
+    assert result.history[0]["val_recall@1"] == pytest.approx(0.351, abs=1e-3)
+    assert result.best_epoch == 1
