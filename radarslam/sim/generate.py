@@ -645,7 +645,9 @@ def simulate(
     os.replace(tmp, syn / "world.npz")
     (root / version).mkdir(parents=True, exist_ok=True)
     for name in TABLES:
-        write_json_atomic(root / version / f"{name}.json", tables[name], indent=None)
+        path = root / version / f"{name}.json"
+        write_json_atomic(path, tables[name], indent=None)
+        os.chmod(path, 0o644)  # readable like the radar files (the temp file was 0600)
     stats = [r["stats"] for r in results]
     summary = SimulationSummary(
         dataroot=str(root),
