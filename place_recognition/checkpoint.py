@@ -65,8 +65,11 @@ def save_checkpoint(
     """Write ``model`` with its configs to ``path`` atomically; ``half`` stores float16 weights."""
     path = Path(path)
     dtype = torch.float16 if half else torch.float32
+    # Stored contiguous (NCHW), whatever memory format the model runs in.
     state = {
-        k: (v.detach().to("cpu", dtype) if v.is_floating_point() else v.detach().cpu()).clone()
+        k: (v.detach().to("cpu", dtype) if v.is_floating_point() else v.detach().cpu())
+        .contiguous()
+        .clone()
         for k, v in _unwrap(model).state_dict().items()
     }
     payload = {
@@ -152,7 +155,7 @@ def load_model(
         first = str(exc).strip().splitlines()
         detail = " ".join(s.strip() for s in first[:2])[:200]
         raise CheckpointError(f"{path}: weights do not fit the stored config ({detail})") from None
-    model.to(device).eval()
+    model.to(device, memory_format=torch.channels_last).eval()
     meta = dict(payload.get("meta") or {})
     meta["train_config"] = payload.get("train_config")
     meta["stored_dtype"] = payload.get("dtype")
