@@ -39,12 +39,18 @@ class RadarMount:
     pitch_deg: float = 0.0
 
     def ego_from_sensor(self) -> np.ndarray:
-        from scipy.spatial.transform import Rotation
-
-        q = Rotation.from_euler(
-            "xyz", [self.roll_deg, self.pitch_deg, self.yaw_deg], degrees=True
-        ).as_quat()  # x y z w
-        return make_transform([self.x_m, self.y_m, self.z_m], [q[3], q[0], q[1], q[2]])
+        r, p, y = np.deg2rad([self.roll_deg, self.pitch_deg, self.yaw_deg])
+        # Extrinsic x-y-z (roll, pitch, yaw) = R_z(yaw) R_y(pitch) R_x(roll), as a quaternion.
+        cr, sr = np.cos(r / 2), np.sin(r / 2)
+        cp, sp = np.cos(p / 2), np.sin(p / 2)
+        cy, sy = np.cos(y / 2), np.sin(y / 2)
+        q = [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+        return make_transform([self.x_m, self.y_m, self.z_m], q)
 
 
 #: Mounting poses close to the nuScenes calibration (ego frame = rear axle).

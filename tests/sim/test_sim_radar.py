@@ -126,3 +126,13 @@ def test_rms_code_and_mounts():
     np.testing.assert_allclose(front[:3, 3], [3.412, 0.0, 0.5])
     left = NUSCENES_MOUNTS[1].ego_from_sensor()
     assert np.rad2deg(np.arctan2(left[1, 0], left[0, 0])) == pytest.approx(88.3)
+
+
+def test_mount_rotation_matches_scipy_euler():
+    from scipy.spatial.transform import Rotation
+
+    from radarslam.sim.radar import RadarMount
+
+    m = RadarMount("RADAR_X", 1.0, 2.0, 0.5, 30.0, 1.5, -2.0)
+    want = Rotation.from_euler("xyz", [1.5, -2.0, 30.0], degrees=True).as_matrix()
+    np.testing.assert_allclose(m.ego_from_sensor()[:3, :3], want, atol=1e-12)
