@@ -577,6 +577,15 @@ def simulate(
                 f"scenario.missing_radar: unknown channel {w.channel!r} "
                 f"(one of {', '.join(CHANNELS)})"
             )
+    world, tum = _cached_world(cfg)
+    duration = None
+    if tum is not None:
+        duration = float(tum[-1, 0] - tum[0, 0])
+        if duration < 3.0:
+            raise ConfigError(
+                f"{cfg.ego.trajectory_tum}: trajectory lasts {duration:.1f} s; need >= 3 s"
+            )
+    plans = plan_logs(cfg, duration)
     root = Path(out_dir)
     version = cfg.output.version
     if root.exists() and not root.is_dir():
@@ -596,15 +605,6 @@ def simulate(
         (root / "samples" / ch).mkdir(parents=True, exist_ok=True)
         (root / "sweeps" / ch).mkdir(parents=True, exist_ok=True)
 
-    world, tum = _cached_world(cfg)
-    duration = None
-    if tum is not None:
-        duration = float(tum[-1, 0] - tum[0, 0])
-        if duration < 3.0:
-            raise ConfigError(
-                f"{cfg.ego.trajectory_tum}: trajectory lasts {duration:.1f} s; need >= 3 s"
-            )
-    plans = plan_logs(cfg, duration)
     results = _run_all(cfg, plans, root, progress)
 
     tables: dict[str, list] = {t: [] for t in TABLES}

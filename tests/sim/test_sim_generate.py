@@ -192,6 +192,7 @@ def test_bad_inputs_are_one_line_errors(tmp_path):
     bad.write_text("0 1 2 3\n")
     with pytest.raises(DataError, match="expected 8 values"):
         simulate("tiny", tmp_path / "w", progress=False, trajectory_tum=bad)
+    assert not (tmp_path / "w").exists()  # validated before anything is written
 
 
 def test_tum_trajectory_is_followed_exactly(tmp_path):
