@@ -195,15 +195,19 @@ def test_short_training_learns_places(data, full_run):
     result, out = full_run
     h = result.history
     assert [r["epoch"] for r in h] == [1, 2, 3, 4]
-    assert h[-1]["loss"] < 0.5 * h[0]["loss"]  # 0.302 -> 0.091 (pinned run)
+    # Reference run (x86-64, 1 thread): loss 0.302 -> 0.091, val R@1 0.351 untrained -> 0.825 at
+    # epoch 3. Tolerances of a few of the 57 val queries absorb other CPUs' float rounding.
+    assert h[-1]["loss"] < 0.5 * h[0]["loss"]
     initial = _fresh_recall(data)
-    assert initial == pytest.approx(0.351, abs=1e-3)
-    assert result.best_recall_at_1 == pytest.approx(0.825, abs=1e-3)
+    assert initial == pytest.approx(0.351, abs=0.06)
+    assert result.best_recall_at_1 >= 0.75
     assert result.best_recall_at_1 > initial + 0.3
-    assert result.best_epoch == 3
+    r1 = [r["val_recall@1"] for r in h]
+    assert result.best_epoch == 1 + r1.index(max(r1)) and result.best_recall_at_1 == max(r1)
     assert [r["lr"] for r in h] == [0.01] * 4
     model, _, meta = load_model(result.best_checkpoint, expect=TINY)
-    assert meta["epoch"] == 3 and meta["val_recall"]["1"] == result.best_recall_at_1
+    assert meta["epoch"] == result.best_epoch
+    assert meta["val_recall"]["1"] == result.best_recall_at_1
     assert meta["train_config"]["epochs"] == 4
     # the best checkpoint reproduces the validation number it was selected with
     db = compute_descriptors(model, data, data.splits["database"])
@@ -219,19 +223,27 @@ def test_short_training_learns_places(data, full_run):
 def test_selection_waits_for_select_after_epoch_and_lr_steps(data, tmp_path):
     cfg = TrainConfig(**{**FAST, "select_after_epoch": 3, "lr_step_epochs": 2})
     result = train(cfg, TINY, data, tmp_path, progress=False)
-    # epoch 3 has the higher R@1 (0.825 vs 0.789) but selection only starts after epoch 3
-    assert result.history[2]["val_recall@1"] > result.history[3]["val_recall@1"]
+    # only epoch 4 may be selected (in the reference run epoch 3 has the higher R@1: 0.825 vs
+    # 0.789, so ignoring select_after_epoch would pick 3)
     assert result.best_epoch == 4
+    assert read_checkpoint(tmp_path / "best.pt")["meta"]["epoch"] == 4
     assert [r["lr"] for r in result.history] == [0.01, 0.01, 0.005, 0.005]
 
 
 def test_patience_stops_early(data, tmp_path):
     cfg = TrainConfig(**{**FAST, "epochs": 8, "patience": 1, "select_after_epoch": 2})
     result = train(cfg, TINY, data, tmp_path, progress=False)
-    r1 = [round(r["val_recall@1"], 3) for r in result.history]
-    # epoch 3 (the first that may be selected) is best; epoch 4 does not beat it -> stop
-    assert r1 == [0.561, 0.667, 0.825, 0.684]
-    assert result.best_epoch == 3
+    # Stop at the first epoch after 2 that does not beat the best of the epochs after 2.
+    # Reference run: R@1 0.561, 0.667, 0.825, 0.684 -> stops after epoch 4, best epoch 3.
+    best, stop = -1.0, None
+    for r in result.history[2:]:
+        if r["val_recall@1"] > best:
+            best, best_epoch = r["val_recall@1"], r["epoch"]
+        else:
+            stop = r["epoch"]
+            break
+    assert stop is not None and len(result.history) == stop < 8
+    assert result.best_epoch == best_epoch
 
 
 def test_resume_continues_exactly(data, full_run, tmp_path):
@@ -362,7 +374,7 @@ def test_export_weights_writes_float16_checkpoint_and_json(data, full_run, tmp_p
     info = tool.export_weights(result.best_checkpoint, data, weights, extra={"note": "test"})
     saved = json.loads(weights.with_suffix(".json").read_text())
     assert saved == json.loads(json.dumps(info))
-    assert saved["selected_epoch"] == 3 and saved["note"] == "test"
+    assert saved["selected_epoch"] == result.best_epoch and saved["note"] == "test"
     assert saved["val_recall_at_selection"]["1"] == result.best_recall_at_1
     # float16 storage moves R@1 by at most one of the 57 val queries here
     assert abs(saved["val_recall_float16"]["1"] - result.best_recall_at_1) <= 1 / 57 + 1e-9
@@ -392,5 +404,5 @@ def test_epochs_without_triplets_still_validate(data, tmp_path):
     assert [r["triplets"] for r in result.history] == [0, 0]
     assert all(r["loss"] is None and r["skipped_queries"] == 57 for r in result.history)
     # no step was taken: validation equals that of the initial weights
-    assert result.history[0]["val_recall@1"] == pytest.approx(0.351, abs=1e-3)
+    assert result.history[0]["val_recall@1"] == _fresh_recall(data)
     assert result.best_epoch == 1
