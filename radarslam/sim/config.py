@@ -118,6 +118,7 @@ class RadarConfig(StrictModel):
     stc_range_m: float = Field(25.0, ge=1)  # path loss is flat below this range
     max_points: int = Field(125, ge=1, le=10000)
     clutter_rate: float = Field(115.0, ge=0)  # low-quality clusters per sweep (Poisson mean)
+    sidelobe_fraction: float = Field(0.2, ge=0, le=1)  # of them: sidelobe echoes of real returns
     ghost_probability: float = Field(0.12, ge=0, le=1)
     double_bounce_probability: float = Field(0.03, ge=0, le=1)
     noise: RadarNoiseConfig = Field(default_factory=RadarNoiseConfig)

@@ -21,7 +21,13 @@ from radarslam.io.atomic import write_json_atomic, write_text_atomic
 from radarslam.nuscenes.pcd import pcd_bytes
 from radarslam.sim.config import SimConfig, load_sim_config
 from radarslam.sim.ego import TumEgo, canonical_routes, extend_route, read_tum
-from radarslam.sim.radar import NUSCENES_MOUNTS, RadarModel, SweepWorld, box_scatterers
+from radarslam.sim.radar import (
+    LABEL_DTYPE,
+    NUSCENES_MOUNTS,
+    RadarModel,
+    SweepWorld,
+    box_scatterers,
+)
 from radarslam.sim.traffic import EGO_START_S, EgoMotion, simulate_traffic
 from radarslam.sim.world import (
     Scatterers,
@@ -367,6 +373,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
     }
     n_points = 0
     n_bytes = 0
+    label_parts: list[np.ndarray] = []
     pad_rng = np.random.default_rng([seed, 606, plan.index])
     far = cfg.radar.far_range_m + 10.0
     for j, (ts, te) in enumerate(plan.scene_windows):
@@ -441,9 +448,13 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 boxes = traffic.boxes(float(t))
                 if _in_window(cfg.scenario.empty_windows, float(t), plan.index):
                     pts = np.zeros(0, dtype=RADAR_DTYPE)
+                    labels = np.zeros(0, dtype=LABEL_DTYPE)
                 else:
                     sw = SweepWorld(*view, boxes)
-                    pts = model.sweep(sw, sxy[k], float(syaw[k]), v_s[k], rng)
+                    pts, labels = model.sweep(
+                        sw, sxy[k], float(syaw[k]), v_s[k], rng, return_labels=True
+                    )
+                label_parts.append(labels)
                 is_key = k in key_of
                 # Non-key sweeps point to the sample nearest in time (as nuScenes does).
                 i_smp = key_of[k] if is_key else int(np.argmin(np.abs(t_smp - t)))
@@ -484,6 +495,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 side["ego_speed"].append(ego.v_fwd_mps[k])
                 side["yaw_rate"].append(ego.yaw_rate_radps[k])
                 side["n_points"].append(len(pts))
+    labels_all = np.concatenate(label_parts) if label_parts else np.zeros(0, LABEL_DTYPE)
     # Per-log ground truth for tests and evaluation (the reader never needs it).
     gt_t = np.arange(0.0, t_end, 0.05)
     ego = ego_fn(gt_t)
@@ -499,6 +511,10 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
         ego_speed_mps=np.array(side["ego_speed"]),
         yaw_rate_radps=np.array(side["yaw_rate"]),
         n_points=np.array(side["n_points"]),
+        # Per-point truth, concatenated in sample_data order (offsets = cumsum of n_points).
+        point_class=labels_all["cls"],
+        point_kind=labels_all["kind"],
+        point_ground_speed_mps=labels_all["ground_speed_mps"],
         gt_time_us=plan.start_us + np.round(gt_t * 1e6).astype(np.int64),
         gt_xy=ego.xy,
         gt_yaw=ego.yaw,

@@ -62,9 +62,14 @@ NUSCENES_MOUNTS: tuple[RadarMount, ...] = (
     RadarMount("RADAR_BACK_RIGHT", -0.562, -0.618, 0.53, -176.2, 0.0, 0.0),
 )
 
+#: Per-point ground truth written to the sidecar: object class (``world.CLASS_NAMES``), candidate
+#: kind (real, weak, mirror ghost, double bounce, static clutter, random clutter) and the true
+#: speed over ground of what produced the point (apparent for ghosts).
+LABEL_DTYPE = np.dtype([("cls", "i1"), ("kind", "i1"), ("ground_speed_mps", "<f4")])
+
 # Candidate kinds (decide the quality fields).
-REAL, WEAK, MIRROR, DOUBLE, CLUTTER_STATIC, CLUTTER_RANDOM = 0, 1, 2, 3, 4, 5
-_SELECT_WEIGHT = np.array([4.0, 1.5, 1.5, 1.0, 1.0, 1.0])
+REAL, WEAK, MIRROR, DOUBLE, CLUTTER_STATIC, CLUTTER_RANDOM, SIDELOBE = 0, 1, 2, 3, 4, 5, 6
+_SELECT_WEIGHT = np.array([4.0, 1.5, 1.5, 1.0, 1.0, 1.0, 1.0])
 # (p of invalid_state 0, other states, their weights) per kind.
 _INVALID = {
     REAL: (0.92, [16, 9, 11, 8, 17], [4, 2, 2, 1, 1]),
@@ -73,16 +78,17 @@ _INVALID = {
     DOUBLE: (0.30, [14, 6, 12], [2, 2, 1]),
     CLUTTER_STATIC: (0.45, [4, 1, 11, 9, 16, 3, 15], [5, 3, 3, 2, 3, 1, 1]),
     CLUTTER_RANDOM: (0.2, [1, 4, 11, 16, 12, 14], [3, 3, 2, 2, 1, 1]),
+    SIDELOBE: (0.45, [11, 16, 9, 4, 17], [3, 3, 2, 2, 1]),
 }
-_INV_P0 = np.array([_INVALID[k][0] for k in range(6)])
-_INV_STATES = np.zeros((6, 7), np.int64)
-_INV_CUM = np.ones((6, 7))
+_INV_P0 = np.array([_INVALID[k][0] for k in range(7)])
+_INV_STATES = np.zeros((7, 7), np.int64)
+_INV_CUM = np.ones((7, 7))
 for _k, (_p0, _states, _w) in _INVALID.items():
     _INV_STATES[_k, : len(_states)] = _states
     _INV_STATES[_k, len(_states) :] = _states[-1]
     _INV_CUM[_k, : len(_w)] = np.cumsum(_w) / np.sum(_w)
-_PDH0_BASE = np.array([1, 2, 2, 3, 3, 4])
-_AMBIG3 = np.array([0.97, 0.93, 0.85, 0.8, 0.84, 0.7])
+_PDH0_BASE = np.array([1, 2, 2, 3, 3, 4, 2])
+_AMBIG3 = np.array([0.97, 0.93, 0.85, 0.8, 0.84, 0.7, 0.9])
 _RMS_RATIO = np.log(1.2884)
 
 # Car scatterers in the box frame, per unit (half length, half width): position, normal, lobe,
@@ -278,9 +284,11 @@ class RadarModel:
         sensor_yaw: float,
         v_sensor: np.ndarray,
         rng: np.random.Generator,
-    ) -> np.ndarray:
+        return_labels: bool = False,
+    ):
         """Points (RADAR_DTYPE) of one sweep; ``v_sensor`` is the sensor's velocity over ground
-        expressed in the sensor frame."""
+        expressed in the sensor frame. With ``return_labels`` also the per-point truth
+        (:data:`LABEL_DTYPE`, same order as the points)."""
         cfg = self.cfg
         noise = cfg.noise
         c, s = np.cos(sensor_yaw), np.sin(sensor_yaw)
@@ -365,8 +373,24 @@ class RadarModel:
         strong = np.flatnonzero((rcs > 8.0) & (np.hypot(pos[:, 0], pos[:, 1]) < 35.0))
         dbl = strong[rng.uniform(0, 1, len(strong)) < cfg.double_bounce_probability]
         # Clutter / low-quality clusters.
-        n_cl = int(rng.poisson(cfg.clutter_rate))
+        n_cl = int(rng.poisson(cfg.clutter_rate * (1.0 - cfg.sidelobe_fraction)))
         cpos, cvel, crcs, ckind = self._clutter(n_cl, v_sensor, rng)
+        # Sidelobe echoes: the range and Doppler of a real return at a wrong azimuth.
+        n_sl = int(rng.poisson(cfg.clutter_rate * cfg.sidelobe_fraction)) if len(pos) else 0
+        if n_sl:
+            src = rng.integers(0, len(pos), n_sl)
+            r_src = np.hypot(pos[src, 0], pos[src, 1])
+            az_src = np.arctan2(pos[src, 1], pos[src, 0])
+            u_src = np.column_stack([np.cos(az_src), np.sin(az_src)])
+            vr_src = np.einsum("ij,ij->i", u_src, v_rel[src])
+            off = rng.uniform(1.5, 5.0, n_sl) * rng.choice([-1.0, 1.0], n_sl)
+            az_sl = az_src + np.deg2rad(off)
+            u_sl = np.column_stack([np.cos(az_sl), np.sin(az_sl)])
+            r_sl = np.maximum(r_src + rng.normal(0, 0.3, n_sl), 1.0)
+            cpos = np.vstack([cpos, r_sl[:, None] * u_sl])
+            cvel = np.vstack([cvel, vr_src[:, None] * u_sl])
+            crcs = np.concatenate([crcs, rng.normal(2.5, 4.0, n_sl)])
+            ckind = np.concatenate([ckind, np.full(n_sl, SIDELOBE)])
 
         all_pos = np.vstack([pos, gpos, 2 * pos[dbl], cpos])
         all_vrel = np.vstack([v_rel, gvel, 2 * v_rel[dbl], cvel])
@@ -388,7 +412,7 @@ class RadarModel:
             sel = np.argsort(-key)[: cfg.max_points]
         else:
             sel = np.flatnonzero(keep)
-        return self._fields(
+        pts, order = self._fields(
             all_pos[sel],
             all_vrel[sel],
             all_rcs[sel],
@@ -398,6 +422,13 @@ class RadarModel:
             v_sensor,
             rng,
         )
+        if not return_labels:
+            return pts
+        labels = np.zeros(len(pts), dtype=LABEL_DTYPE)
+        labels["cls"] = all_cls[sel][order]
+        labels["kind"] = all_kind[sel][order]
+        labels["ground_speed_mps"] = np.linalg.norm(all_vrel[sel] + v_sensor, axis=1)[order]
+        return pts, labels
 
     def _snr(self, rcs, r, az, in_far):
         cfg = self.cfg
@@ -460,7 +491,7 @@ class RadarModel:
 
     def _clutter(self, n, v_sensor, rng):
         cfg = self.cfg
-        far = rng.uniform(0, 1, n) < 0.3
+        far = rng.uniform(0, 1, n) < 0.45
         az = np.where(
             far,
             rng.uniform(-1, 1, n) * np.deg2rad(cfg.far_fov_deg),
@@ -476,12 +507,12 @@ class RadarModel:
         kind = np.where(random_v, CLUTTER_RANDOM, CLUTTER_STATIC)
         return pos, v, rcs, kind
 
-    def _fields(self, pos, v_rel, rcs, kind, cls, stop, v_sensor, rng) -> np.ndarray:
+    def _fields(self, pos, v_rel, rcs, kind, cls, stop, v_sensor, rng):
         cfg, noise = self.cfg, self.cfg.noise
         n = len(pos)
         out = np.zeros(n, dtype=RADAR_DTYPE)
         if n == 0:
-            return out
+            return out, np.zeros(0, np.int64)
         r = np.hypot(pos[:, 0], pos[:, 1])
         az = np.arctan2(pos[:, 1], pos[:, 0])
         sig_r = noise.range_std_m[0] + noise.range_std_m[1] * r
@@ -528,7 +559,7 @@ class RadarModel:
         moving_dp = np.where(vg_tan > 2.0 * np.abs(vg_rad), 6, np.where(vr_comp > 0, 0, 2))
         dp = np.where(moving, moving_dp, static_dp)
         dp = np.where(stop & ~moving & (rng.uniform(0, 1, n) < 0.85), 7, dp)
-        clutter = (kind == CLUTTER_STATIC) | (kind == CLUTTER_RANDOM)
+        clutter = (kind == CLUTTER_STATIC) | (kind == CLUTTER_RANDOM) | (kind == SIDELOBE)
         dp = np.where(clutter & (rng.uniform(0, 1, n) < 0.15), 4, dp)
         dp = np.where(rng.uniform(0, 1, n) < 0.02, 4, dp)
         out["dyn_prop"] = dp
@@ -555,4 +586,4 @@ class RadarModel:
         order = np.argsort(rr, kind="stable")
         out = out[order]
         out["id"] = np.arange(n)
-        return out
+        return out, order
