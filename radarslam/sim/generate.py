@@ -434,6 +434,11 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 nearest = int(np.argmin(np.abs(t_sw - tsmp)))
                 if abs(t_sw[nearest] - tsmp) <= 0.6 * cfg.radar.period_s:
                     key_of[nearest] = i
+            # As in nuScenes, a radar's chain in a scene starts with its first key frame.
+            if key_of:
+                first = min(key_of)
+                t_sw = t_sw[first:]
+                key_of = {k - first: i for k, i in key_of.items()}
             ego = ego_fn(t_sw)
             sxy, syaw, v_s = _sensor_states(ego, (m.x_m, m.y_m), np.deg2rad(m.yaw_deg))
             sd_tok = [

@@ -97,8 +97,9 @@ def test_layout_and_tables(tiny_dataroot):
             assert nxt["filename"].split("/")[1] == m.group(2)
             assert 60_000 < nxt["timestamp"] - r["timestamp"] < 95_000  # ~13 Hz with jitter
     assert all(v == set(CHANNELS) for v in key_channels.values())
-    # One chain per radar per scene: 2 scenes x 5 radars heads.
-    assert sum(1 for r in sds if not r["prev"]) == 10
+    # One chain per radar per scene: 2 scenes x 5 radars heads, each a key frame (as nuScenes).
+    heads = [r for r in sds if not r["prev"]]
+    assert len(heads) == 10 and all(r["is_key_frame"] for r in heads)
     # Real files carry trailing zero padding after the records.
     for r in sds[:50]:
         data = (root / r["filename"]).read_bytes()
