@@ -162,7 +162,9 @@ class AutoPlaceNet(nn.Module):
         if cfg.input_norm == "imagenet" and cfg.in_channels == 1:
             x = x.expand(-1, 3, -1, -1)
         x = (x - self.mean) / self.std
-        x = self.encoder(x)
+        # The convolution weights are channels-last; an NCHW input would be converted before
+        # every convolution (measured 3x slower on 2 CPU threads).
+        x = self.encoder(x.contiguous(memory_format=torch.channels_last))
         x = F.normalize(x, p=2, dim=1)  # per-position L2 over channels
         x = self.pool(x)
         if self.lstm is not None:

@@ -33,7 +33,11 @@ class LoopDetectionConfig(StrictModel):
     #: Key frames of the same session closer in time than this are never candidates.
     exclude_recent_s: float = Field(30.0, ge=0.0)
     #: After an accepted loop, the next this-many key frames of the session skip loop search.
-    min_key_frames_between_loops: int = Field(2, ge=0)
+    min_key_frames_between_loops: int = Field(4, ge=0)
+    #: When odometry (same session) or the map (both sessions placed) predicts the relative pose,
+    #: verification searches only this far around the prediction, at its heading: ~4x cheaper
+    #: than the global search, and a false match elsewhere cannot be accepted.
+    guided_search_radius_m: float = Field(8.0, gt=0.0)
     #: A new session joins the map only after this many loops agree on where it is.
     link_min_consistent_loops: int = Field(2, ge=1)
     link_consistency_m: float = Field(3.0, gt=0.0)

@@ -43,21 +43,25 @@ __all__ = [
 
 
 class LoopVerifierConfig(StrictModel):
+    # Defaults tuned on the synthetic demo city (50 true revisits from other days vs 50 wrong
+    # places 40+ m away; street grids alias): true matches have fitness >= ~0.58 and inlier RMSE
+    # <= 0.6 m, most wrong ones fall below / above. 1 m voxels and 30 deg headings are ~3x faster
+    # than 0.5 m / 15 deg at the same recall.
     backend: Literal["open3d", "small_gicp"] = "open3d"
-    voxel_size_m: float = Field(0.5, gt=0)
+    voxel_size_m: float = Field(1.0, gt=0)
     min_points: int = Field(30, ge=3)
-    heading_step_deg: float = Field(15.0, gt=0, le=360)
+    heading_step_deg: float = Field(30.0, gt=0, le=360)
     correlative_search: bool = True
     search_radius_m: float = Field(15.0, ge=0)
     grid_cell_m: float = Field(2.0, gt=0)
-    refine_top_k: int = Field(3, ge=1)
+    refine_top_k: int = Field(2, ge=1)
     coarse_max_correspondence_m: float = Field(3.0, gt=0)
     max_correspondence_m: float = Field(1.0, gt=0)
-    max_iterations: int = Field(50, ge=1)
+    max_iterations: int = Field(30, ge=1)
     # acceptance
-    min_fitness: float = Field(0.5, ge=0, le=1)
+    min_fitness: float = Field(0.55, ge=0, le=1)
     max_inlier_rmse_m: float = Field(0.6, gt=0)
-    min_overlap: float = Field(0.35, ge=0, le=1)
+    min_overlap: float = Field(0.45, ge=0, le=1)
     overlap_cell_m: float = Field(2.0, gt=0)
     # information = inv(inv(H / sigma^2) + floor): registration Hessian with sigma = inlier RMSE,
     # plus a floor covariance for what point-to-point ICP cannot see (correlated radar points,

@@ -57,7 +57,6 @@ class KeyFrame:
     ego_from_ref: np.ndarray
     relative: np.ndarray | None = None  # prev_ego_from_ego from the odometry
     relative_cov: np.ndarray | None = None
-    feature: object = None  # the place model's per-frame feature (encoded once, reused by t+1, t+2)
 
 
 @dataclass
@@ -146,6 +145,15 @@ class SlamPipeline:
         self._frame_filter = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
         self.graph = PoseGraph(cfg.backend.pose_graph)
         self.verifier = LoopVerifier(cfg.backend.loop_verification)
+        self.guided_verifier = LoopVerifier(
+            cfg.backend.loop_verification.model_copy(
+                update={
+                    "heading_step_deg": 360.0,  # one hypothesis: the predicted heading
+                    "search_radius_m": cfg.loops.guided_search_radius_m,
+                    "refine_top_k": 1,
+                }
+            )
+        )
         self.recognizer = recognizer
         if self.recognizer is None and cfg.loops.enabled:
             self.recognizer = load_recognizer(cfg.loops.checkpoint, cfg.loops.recognizer_config)
@@ -295,27 +303,11 @@ class SlamPipeline:
         self.timings.verification_s += time.perf_counter() - t1
 
     def _describe(self, session: _Session, kf: KeyFrame, cloud) -> tuple[np.ndarray, np.ndarray]:
-        """The key frame's AutoPlace descriptor over (t-2, t-1, t). Each key frame's image is
-        encoded once and its feature kept; only the temporal aggregation runs per key frame."""
-        rec = self.recognizer
-        model = getattr(rec, "model", None)
-        if not (hasattr(model, "encode_frames") and hasattr(model, "aggregate")):
-            past = [self._cloud_of(k) for k in session.key_frames[-rec.seq_len : -1]]
-            return rec.describe([*past, cloud])
-        import torch
-
-        from place_recognition.prepare import frame_from_cloud
-
-        frame = frame_from_cloud(cloud, image_cfg=rec.config.image)
-        image = frame.image.astype(np.float32)[None]
-        if image.shape[1] > 1:  # count / RCS channels are stored as 0..255
-            image[:, 1:] /= 255.0
-        with torch.no_grad():
-            kf.feature = model.encode_frames(torch.from_numpy(image).to(rec.config.device))[0]
-            seq = [k.feature for k in session.key_frames[-rec.seq_len :]]
-            seq = [seq[0]] * (rec.seq_len - len(seq)) + seq  # scene start: repeat the oldest
-            desc = model.aggregate(torch.stack(seq)[None])[0]
-        return desc.float().cpu().numpy(), frame.rcs01
+        """The key frame's AutoPlace descriptor over (t-2, t-1, t); the recognizer encodes each
+        key frame's image once (its feature cache is keyed by sample token)."""
+        n = self.recognizer.seq_len
+        past = [self._cloud_of(k) for k in session.key_frames[-n:-1]]
+        return self.recognizer.describe([*past, cloud])
 
     def _cloud_of(self, kf: KeyFrame):
         from radarslam.types import AccumulatedCloud
@@ -359,7 +351,9 @@ class SlamPipeline:
         return None
 
     def _verify(self, session: _Session, query: KeyFrame, cand: KeyFrame, distance: float) -> None:
-        record, ver = self.verifier.verify_candidate(
+        guess = self._guess(query, cand)
+        verifier = self.verifier if guess is None else self.guided_verifier
+        record, ver = verifier.verify_candidate(
             query.key,
             cand.key,
             query.timestamp_us,
@@ -367,7 +361,7 @@ class SlamPipeline:
             distance,
             self._local_map(query, past_only=True),
             self._local_map(cand, past_only=False),
-            self._guess(query, cand),
+            guess,
         )
         if not record.accepted:
             self.loops.append(record)
