@@ -133,7 +133,7 @@ def _run_scripted(reader, accept):
     cfg.loops.num_candidates = 50
     cfg.loops.min_key_frames_between_loops = 0
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    pipeline.verifier = _ScriptedVerifier(pipeline, accept)
+    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
     return pipeline.run(scenes)
 
 
