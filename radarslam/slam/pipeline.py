@@ -75,6 +75,7 @@ class _Session:
     index: int
     key_frames: list[KeyFrame] = field(default_factory=list)
     inserted: bool = False
+    world_from_session: np.ndarray | None = None  # where the chain was put in the map
     pending: list[_PendingLoop] = field(default_factory=list)
     last_loop_kf: int = -(10**9)
 
@@ -162,6 +163,8 @@ class SlamPipeline:
         self.timings = SlamTimings()
         self._kf_by_key: dict[NodeKey, KeyFrame] = {}
         self._duration_s = 0.0
+        #: Information matrix of every loop factor added, by (candidate, query).
+        self.loop_information: dict[tuple[NodeKey, NodeKey], np.ndarray] = {}
 
     # --- the run ---------------------------------------------------------------------------------
 
@@ -390,6 +393,7 @@ class SlamPipeline:
         self.graph.add_loop(
             record.candidate, record.query, record.candidate_from_query, information
         )
+        self.loop_information[(record.candidate, record.query)] = information
         self.loops.append(record)
 
     def _try_link(self, session: _Session) -> None:
@@ -430,6 +434,7 @@ class SlamPipeline:
         kfs = session.key_frames
         self.graph.add_session(session.name, world_from_session @ kfs[0].odometry_pose, anchor)
         session.inserted = True
+        session.world_from_session = world_from_session
         for kf in kfs[1:]:
             self._add_node(session, kf)
         accepted_votes = {id(p) for p in agreeing or []}
@@ -446,6 +451,13 @@ class SlamPipeline:
         session.pending = []
 
     # --- results --------------------------------------------------------------------------------
+
+    def key_frames(self, session: str) -> list[KeyFrame]:
+        return list(self.sessions[session].key_frames)
+
+    def session_placement(self, session: str) -> np.ndarray | None:
+        """world_from_session used to insert the session's odometry chain (None: not inserted)."""
+        return self.sessions[session].world_from_session
 
     def _dpr_mask(self):
         if self.recognizer is None:
