@@ -25,8 +25,12 @@ def run(preset: str, jobs: int | None, overrides: list[str]) -> dict:
         cpu = time.process_time() - cpu0
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    if jobs is None:
+        from radarslam.sim.config import load_sim_config
+
+        jobs = load_sim_config(preset, overrides).jobs
     return {
-        "preset": preset, "jobs": jobs or 1, "logs": s.n_logs, "scenes": s.n_scenes,
+        "preset": preset, "jobs": min(jobs, s.n_logs), "logs": s.n_logs, "scenes": s.n_scenes,
         "key frames": s.n_samples, "sweeps": s.n_sweeps, "points": s.n_points,
         "seconds": s.seconds, "parent cpu s": cpu, "sweeps/s": s.sweeps_per_s,
         "ms/sweep": 1000 * s.seconds / max(s.n_sweeps, 1), "MB": s.bytes_written / 1e6,
