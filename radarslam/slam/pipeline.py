@@ -300,7 +300,8 @@ class SlamPipeline:
         t1 = time.perf_counter()
         self.timings.place_recognition_s += t1 - t0
         for cand in candidates:
-            if cfg.max_score is not None and cand.score > cfg.max_score:
+            gate = cfg.max_descriptor_distance
+            if gate is not None and cand.descriptor_distance > gate:
                 continue
             self._verify(session, kf, self._kf_by_key[cand.key], cand.descriptor_distance)
         self.timings.verification_s += time.perf_counter() - t1
