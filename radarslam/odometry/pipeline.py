@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from radarslam.errors import DataError
+from radarslam.geometry import invert
 from radarslam.odometry.config import OdometryConfig
 from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit
 from radarslam.odometry.lie import adjoint_se2, exp_jacobian_twist, exp_se2, log_se2, planar
@@ -96,13 +97,13 @@ class _Interval:
     anchor_icp_cov: np.ndarray | None = None
 
     def propagate(self, delta: np.ndarray, delta_cov: np.ndarray) -> None:
-        ad = adjoint_se2(_inv_se2(delta))
+        ad = adjoint_se2(invert(delta))
         self.cov = ad @ self.cov @ ad.T + delta_cov
 
     def relative(
         self, pose: np.ndarray, icp_cov: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray]:
-        motion = _inv_se2(self.anchor_pose) @ pose
+        motion = invert(self.anchor_pose) @ pose
         cov = self.cov
         if icp_cov is not None and self.anchor_icp_cov is not None:
             cov = _fuse_cov(cov, self.anchor_icp_cov + icp_cov)
@@ -112,14 +113,6 @@ class _Interval:
         self.cov = np.zeros((3, 3))
         self.anchor_pose = pose
         self.anchor_icp_cov = icp_cov
-
-
-def _inv_se2(pose: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    r = pose[:2, :2]
-    out[:2, :2] = r.T
-    out[:2, 3] = -r.T @ pose[:2, 3]
-    return out
 
 
 def _fuse_cov(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -270,7 +263,7 @@ class RadarOdometry:
                 # A vehicle stopped at both ends of a 77 ms interval did not accelerate in it.
                 xi_cov = xi_cov + self._q * gap_s**3
             delta_cov = jr @ xi_cov @ jr.T
-            ad = adjoint_se2(_inv_se2(delta))
+            ad = adjoint_se2(invert(delta))
             pose = self._pose @ delta
             pose_cov = _sym(ad @ self._cov @ ad.T + delta_cov)
 
@@ -294,7 +287,7 @@ class RadarOdometry:
                 )
             elif not first:
                 status = "skipped"
-            deviation = _inv_se2(predicted) @ pose if not first else None
+            deviation = invert(predicted) @ pose if not first else None
             reg.update(frame_down, pose, deviation)
         elif reg is not None and not first:
             status = "skipped"
@@ -308,7 +301,7 @@ class RadarOdometry:
             rel_cov = _fuse_cov(delta_cov, self._last_icp_cov + icp_cov)
         else:
             rel_cov = delta_cov
-        relative = np.eye(4) if first else _inv_se2(self._pose) @ pose
+        relative = np.eye(4) if first else invert(self._pose) @ pose
 
         # Key-frame interval bookkeeping.
         kf_motion = kf_cov = None
@@ -361,7 +354,7 @@ class RadarOdometry:
         fc = self.config.fusion
         if fc.mode == "icp":
             return reg.world_from_ego, icp_cov, True, "icp"
-        innovation = log_se2(_inv_se2(predicted) @ reg.world_from_ego)
+        innovation = log_se2(invert(predicted) @ reg.world_from_ego)
         s = pred_cov + icp_cov
         try:
             mahal = float(innovation @ np.linalg.solve(s, innovation))

@@ -41,6 +41,13 @@ class LoopDetectionConfig(StrictModel):
     #: verification searches only this far around the prediction, at its heading: ~4x cheaper
     #: than the global search, and a false match elsewhere cannot be accepted.
     guided_search_radius_m: float = Field(8.0, gt=0.0)
+    #: Between two sessions already in the map, a verified loop that moves the query farther than
+    #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
+    map_consistency_m: float = Field(3.0, gt=0.0)
+    map_consistency_deg: float = Field(10.0, gt=0.0)
+    #: A session not yet in the map verifies at most this many candidates per key frame (each
+    #: needs the costly global search over headings and translations).
+    unlinked_candidates_per_key_frame: int = Field(1, ge=1)
     #: A new session joins the map only after this many loops agree on where it is.
     link_min_consistent_loops: int = Field(2, ge=1)
     link_consistency_m: float = Field(3.0, gt=0.0)

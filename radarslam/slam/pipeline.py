@@ -299,10 +299,18 @@ class SlamPipeline:
         self.recognizer.add_descriptor(desc, rcs, kf.key)
         t1 = time.perf_counter()
         self.timings.place_recognition_s += t1 - t0
+        budget = None if session.inserted else cfg.unlinked_candidates_per_key_frame
         for cand in candidates:
             gate = cfg.max_descriptor_distance
             if gate is not None and cand.descriptor_distance > gate:
                 continue
+            cand_session = self.sessions[cand.key.session]
+            if not session.inserted and not cand_session.inserted and cand_session is not session:
+                continue  # two sessions outside the map: such a loop could not be used
+            if budget is not None:
+                if budget == 0:
+                    break
+                budget -= 1
             self._verify(session, kf, self._kf_by_key[cand.key], cand.descriptor_distance)
         self.timings.verification_s += time.perf_counter() - t1
 
@@ -367,10 +375,20 @@ class SlamPipeline:
             self._local_map(cand, past_only=False),
             guess,
         )
+        cand_session = self.sessions[cand.key.session]
+        if record.accepted and guess is not None and cand_session is not session:
+            # The guess came from the map: a pose far from it is a look-alike place.
+            cfg = self.config.loops
+            dist_m, dyaw_deg = _se2_distance(guess, record.candidate_from_query)
+            if dist_m > cfg.map_consistency_m or dyaw_deg > cfg.map_consistency_deg:
+                record = replace(
+                    record,
+                    accepted=False,
+                    reason=f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from the map's prediction",
+                )
         if not record.accepted:
             self.loops.append(record)
             return
-        cand_session = self.sessions[cand.key.session]
         if session.inserted and cand_session.inserted:
             self._add_loop(record, ver.information)
         elif cand_session.inserted:  # a loop from outside the map into it: a link vote
@@ -383,11 +401,8 @@ class SlamPipeline:
             self._try_link(session)
         elif cand_session is session:  # inside a session that is not in the map yet
             session.pending.append(_PendingLoop(record, ver.information))
-        else:
-            self.loops.append(
-                replace(record, accepted=False, reason="neither session is in the map yet")
-            )
-            return
+        else:  # not reached: _detect_loops skips pairs of sessions both outside the map
+            raise AssertionError("loop between two sessions outside the map")
         session.last_loop_kf = query.key.index
 
     def _add_loop(self, record: LoopCandidate, information: np.ndarray) -> None:

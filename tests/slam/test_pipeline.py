@@ -115,8 +115,8 @@ class _AllCandidates:
     def query_descriptor(self, desc, rcs, k, exclude):
         from place_recognition.recognizer import PlaceCandidate
 
-        keys = [key for key in self.keys if not exclude(key)]
-        return [PlaceCandidate(key, 0.1, 0.1, r) for r, key in enumerate(keys[-k:])]
+        keys = [key for key in reversed(self.keys) if not exclude(key)]  # most recent first
+        return [PlaceCandidate(key, 0.1, 0.1, r) for r, key in enumerate(keys[:k])]
 
     def add_descriptor(self, desc, rcs, key):
         self.keys.append(key)
