@@ -333,11 +333,14 @@ class SlamPipeline:
         )
 
     def _excluded(self, kf: KeyFrame) -> Callable[[NodeKey], bool]:
+        """Keys a query may not return: the recent past of its own pass and, while its session
+        is outside the map, other sessions outside the map (a loop to them could not be used)."""
         recent_us = self.config.loops.exclude_recent_s * 1e6
+        placed = self.sessions[kf.key.session].inserted
 
         def skip(key: NodeKey) -> bool:
             if key.session != kf.key.session:
-                return False
+                return not placed and not self.sessions[key.session].inserted
             return kf.timestamp_us - self._kf_by_key[key].timestamp_us < recent_us
 
         return skip
