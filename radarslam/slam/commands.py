@@ -185,7 +185,7 @@ def _ensure_synthetic(preset: str, dataroot: Path, progress: bool) -> str:
     from radarslam.sim.config import load_sim_config
     from radarslam.sim.generate import is_complete, simulate
 
-    version = load_sim_config(preset).version
+    version = load_sim_config(preset).output.version
     if not is_complete(dataroot, version):
         summary = simulate(preset, dataroot, progress=progress)
         typer.echo(str(summary), err=True)
