@@ -19,12 +19,13 @@
    e. accepted loops become robust factors; iSAM2 receives only the new factors and values.
 3. A final batch Levenberg-Marquardt, the static map, and the results folder.
 
-Multi-session. Each scene is its own odometry chain. The first session is anchored; a later one is
-held outside the graph until ``link_min_consistent_loops`` verified loops agree on where it lies,
-and is then inserted with its poses moved there (iSAM2 never sees a chain initialised kilometres
-away). Intra- and inter-session loops found before the link are kept and added with it. A session
-that never links is added at the end on its own weak anchor and reported as a separate component,
-not forced into the map.
+Multi-session. Each scene is its own odometry chain and starts as its own *group*. Verified loops
+between two groups are votes on their relative placement; once ``link_min_consistent_loops``
+votes agree, the groups merge (the other votes are rejected as false loops). The first session's
+group is the map: a group that merges into it enters the graph with its poses moved there (iSAM2
+never sees a chain initialised kilometres away), together with the loops found inside it. Groups
+that never reach the map are added at the end on their own weak anchor and reported as separate
+components, not forced into the map.
 """
 
 from __future__ import annotations
@@ -61,22 +62,31 @@ class KeyFrame:
 
 @dataclass
 class _PendingLoop:
-    """A verified loop of a session not yet in the graph."""
+    """A verified loop not yet in the graph."""
 
     record: LoopCandidate
     information: np.ndarray
-    #: For a loop to a session already in the map: where it says this session lies.
-    world_from_session: np.ndarray | None = None
+
+
+@dataclass
+class _Group:
+    """Sessions placed relative to each other by consistent loops; ``in_map`` for the group of
+    the anchored first session (its frame is the world)."""
+
+    index: int
+    from_session: dict[str, np.ndarray] = field(default_factory=dict)  # group_from_session
+    in_map: bool = False
+    loops: list[_PendingLoop] = field(default_factory=list)  # inside the group, not in the graph
 
 
 @dataclass
 class _Session:
     name: str
     index: int
+    group: int = -1
     key_frames: list[KeyFrame] = field(default_factory=list)
     inserted: bool = False
     world_from_session: np.ndarray | None = None  # where the chain was put in the map
-    pending: list[_PendingLoop] = field(default_factory=list)
     last_loop_kf: int = -(10**9)
 
 
@@ -159,6 +169,9 @@ class SlamPipeline:
         if self.recognizer is None and cfg.loops.enabled:
             self.recognizer = load_recognizer(cfg.loops.checkpoint, cfg.loops.recognizer_config)
         self.sessions: dict[str, _Session] = {}
+        self.groups: dict[int, _Group] = {}
+        #: Verified loops between two groups, waiting for a consistent partner to merge them.
+        self._votes: list[_PendingLoop] = []
         self.loops: list[LoopCandidate] = []
         self.timings = SlamTimings()
         self._kf_by_key: dict[NodeKey, KeyFrame] = {}
@@ -186,9 +199,18 @@ class SlamPipeline:
                 bar.close()
         if not any(s.key_frames for s in self.sessions.values()):
             raise DataError(f"no key frame with radar data in scene(s) {', '.join(names)}")
-        for session in self.sessions.values():
-            if not session.inserted and session.key_frames:
-                self._insert_session(session, np.eye(4), anchor="unknown")
+        for vote in self._votes:  # never confirmed by a consistent second loop
+            self.loops.append(
+                replace(
+                    vote.record,
+                    accepted=False,
+                    reason="too few consistent loops to link the session",
+                )
+            )
+        self._votes = []
+        for group in list(self.groups.values()):
+            if not group.in_map:
+                self._insert_group(group, anchor="unknown")  # a separate component
         t0 = time.perf_counter()
         self.graph.update()
         self.graph.optimize_batch()
@@ -201,6 +223,9 @@ class SlamPipeline:
 
         session = _Session(info.name, len(self.sessions))
         self.sessions[info.name] = session
+        group = _Group(len(self.groups), {info.name: np.eye(4)})
+        self.groups[group.index] = group
+        session.group = group.index
         first = session.index == 0
         self.odometry.config.initial_pose = (
             cfg.first_session_anchor if first else "identity"  # later sessions: unknown start
@@ -269,7 +294,8 @@ class SlamPipeline:
         if session.inserted:
             self._add_node(session, kf)
         elif index == 0 and session.index == 0:
-            self._insert_session(session, np.eye(4), anchor="prior")
+            self.groups[session.group].in_map = True
+            self._insert_group(self.groups[session.group], anchor="prior")
 
         if self.recognizer is not None:
             self._detect_loops(session, kf, cloud)
@@ -304,9 +330,6 @@ class SlamPipeline:
             gate = cfg.max_descriptor_distance
             if gate is not None and cand.descriptor_distance > gate:
                 continue
-            cand_session = self.sessions[cand.key.session]
-            if not session.inserted and not cand_session.inserted and cand_session is not session:
-                continue  # two sessions outside the map: such a loop could not be used
             if budget is not None:
                 if budget == 0:
                     break
@@ -333,14 +356,12 @@ class SlamPipeline:
         )
 
     def _excluded(self, kf: KeyFrame) -> Callable[[NodeKey], bool]:
-        """Keys a query may not return: the recent past of its own pass and, while its session
-        is outside the map, other sessions outside the map (a loop to them could not be used)."""
+        """Keys a query may not return: the recent past of its own pass."""
         recent_us = self.config.loops.exclude_recent_s * 1e6
-        placed = self.sessions[kf.key.session].inserted
 
         def skip(key: NodeKey) -> bool:
             if key.session != kf.key.session:
-                return not placed and not self.sessions[key.session].inserted
+                return False
             return kf.timestamp_us - self._kf_by_key[key].timestamp_us < recent_us
 
         return skip
@@ -357,12 +378,19 @@ class SlamPipeline:
             chunks.append(other.cloud_xy_ego @ t[:2, :2].T + t[:2, 3])
         return np.concatenate(chunks) if chunks else np.zeros((0, 2))
 
+    def _pose_in_group(self, kf: KeyFrame) -> np.ndarray:
+        """The key frame's pose in its group's frame (the graph's estimate once in the map)."""
+        session = self.sessions[kf.key.session]
+        if session.inserted:
+            return self.graph.current_pose(kf.key)
+        return self.groups[session.group].from_session[session.name] @ kf.odometry_pose
+
     def _guess(self, query: KeyFrame, cand: KeyFrame) -> np.ndarray | None:
         qs, cs = self.sessions[query.key.session], self.sessions[cand.key.session]
         if qs is cs:
             return invert(cand.odometry_pose) @ query.odometry_pose
-        if qs.inserted and cs.inserted:
-            return invert(self.graph.current_pose(cand.key)) @ self.graph.current_pose(query.key)
+        if qs.group == cs.group:
+            return invert(self._pose_in_group(cand)) @ self._pose_in_group(query)
         return None
 
     def _verify(self, session: _Session, query: KeyFrame, cand: KeyFrame, distance: float) -> None:
@@ -380,7 +408,7 @@ class SlamPipeline:
         )
         cand_session = self.sessions[cand.key.session]
         if record.accepted and guess is not None and cand_session is not session:
-            # The guess came from the map: a pose far from it is a look-alike place.
+            # The guess came from the map (or the group): a pose far from it is a look-alike.
             cfg = self.config.loops
             dist_m, dyaw_deg = _se2_distance(guess, record.candidate_from_query)
             if dist_m > cfg.map_consistency_m or dyaw_deg > cfg.map_consistency_deg:
@@ -392,20 +420,15 @@ class SlamPipeline:
         if not record.accepted:
             self.loops.append(record)
             return
-        if session.inserted and cand_session.inserted:
-            self._add_loop(record, ver.information)
-        elif cand_session.inserted:  # a loop from outside the map into it: a link vote
-            world_from_session = (
-                self.graph.current_pose(cand.key)
-                @ record.candidate_from_query
-                @ invert(query.odometry_pose)
-            )
-            session.pending.append(_PendingLoop(record, ver.information, world_from_session))
-            self._try_link(session)
-        elif cand_session is session:  # inside a session that is not in the map yet
-            session.pending.append(_PendingLoop(record, ver.information))
-        else:  # not reached: _detect_loops skips pairs of sessions both outside the map
-            raise AssertionError("loop between two sessions outside the map")
+        loop = _PendingLoop(record, ver.information)
+        if session.group == cand_session.group:
+            if session.inserted:
+                self._add_loop(record, ver.information)
+            else:
+                self.groups[session.group].loops.append(loop)
+        else:  # between two groups: a vote on where one lies in the other
+            self._votes.append(loop)
+            self._try_merge(session.group, cand_session.group)
         session.last_loop_kf = query.key.index
 
     def _add_loop(self, record: LoopCandidate, information: np.ndarray) -> None:
@@ -415,61 +438,90 @@ class SlamPipeline:
         self.loop_information[(record.candidate, record.query)] = information
         self.loops.append(record)
 
-    def _try_link(self, session: _Session) -> None:
-        """Insert ``session`` once enough link votes agree on where it lies (the largest set of
-        mutually consistent votes wins; the others are rejected as false loops)."""
+    def _b_from_a(self, vote: _PendingLoop, a: int) -> np.ndarray:
+        """Where a vote between groups ``a`` and another puts ``a`` in the other's frame."""
+        rec = vote.record
+        q, c = self._kf_by_key[rec.query], self._kf_by_key[rec.candidate]
+        other_from_query_group = (
+            self._pose_in_group(c) @ rec.candidate_from_query @ invert(self._pose_in_group(q))
+        )
+        if self.sessions[rec.query.session].group == a:
+            return other_from_query_group
+        return invert(other_from_query_group)
+
+    def _try_merge(self, a: int, b: int) -> None:
+        """Merge groups ``a`` and ``b`` once enough votes between them agree on their relative
+        placement (the largest consistent set wins; the others are rejected as false loops)."""
         cfg = self.config.loops
-        votes = [p for p in session.pending if p.world_from_session is not None]
+        groups_of = {a, b}
+        votes = [
+            v
+            for v in self._votes
+            if {self.sessions[v.record.query.session].group,
+                self.sessions[v.record.candidate.session].group} == groups_of
+        ]  # fmt: skip
+        placements = [self._b_from_a(v, a) for v in votes]
         limits = (cfg.link_consistency_m, cfg.link_consistency_deg)
-        best: list[_PendingLoop] = []
-        for v in votes:
+        best: list[int] = []
+        for t_i in placements:
             agree = [
-                w
-                for w in votes
-                if all(
-                    d <= lim
-                    for d, lim in zip(
-                        _se2_distance(v.world_from_session, w.world_from_session),
-                        limits,
-                        strict=True,
-                    )
-                )
+                j
+                for j, t_j in enumerate(placements)
+                if all(d <= lim for d, lim in zip(_se2_distance(t_i, t_j), limits, strict=True))
             ]
             if len(agree) > len(best):
                 best = agree
-        if len(best) >= cfg.link_min_consistent_loops:
-            self._insert_session(session, best[0].world_from_session, "unknown", best)
+        if len(best) < cfg.link_min_consistent_loops:
+            return
+        b_from_a = placements[best[0]]
+        agreeing = {id(votes[j]) for j in best}
+        for v in votes:
+            self._votes.remove(v)
+            if id(v) not in agreeing:
+                self.loops.append(
+                    replace(v.record, accepted=False, reason="inconsistent with the session link")
+                )
+        self._merge(a, b, b_from_a, [v for v in votes if id(v) in agreeing])
 
-    def _insert_session(
-        self,
-        session: _Session,
-        world_from_session: np.ndarray,
-        anchor: str,
-        agreeing: list[_PendingLoop] | None = None,
-    ) -> None:
-        """Put a session's chain into the graph at ``world_from_session`` with its pending loops.
-        Link votes outside ``agreeing`` are rejected as false loops; a session inserted without
-        a link (never linked) keeps only its intra-session loops."""
+    def _merge(self, a: int, b: int, b_from_a: np.ndarray, links: list[_PendingLoop]) -> None:
+        ga, gb = self.groups[a], self.groups[b]
+        if ga.in_map or (not gb.in_map and len(ga.from_session) > len(gb.from_session)):
+            ga, gb, b_from_a = gb, ga, invert(b_from_a)  # keep the map's (or larger) frame
+        del self.groups[ga.index]
+        moved = list(ga.from_session)
+        for name, group_from_session in ga.from_session.items():
+            gb.from_session[name] = b_from_a @ group_from_session
+            self.sessions[name].group = gb.index
+        loops = ga.loops + links
+        if gb.in_map:
+            for name in moved:
+                self._insert_session(self.sessions[name], gb.from_session[name], "unknown")
+            for p in loops:
+                self._add_loop(p.record, p.information)
+        else:
+            gb.loops.extend(loops)
+
+    def _insert_group(self, group: _Group, anchor: str) -> None:
+        """Put every session of a group into the graph (the first with ``anchor``) and its
+        loops; a group outside the map becomes its own component."""
+        for k, name in enumerate(group.from_session):
+            self._insert_session(
+                self.sessions[name], group.from_session[name], anchor if k == 0 else "unknown"
+            )
+        for p in group.loops:
+            self._add_loop(p.record, p.information)
+        group.loops = []
+
+    def _insert_session(self, session: _Session, world_from_session: np.ndarray, anchor: str):
+        """Put a session's odometry chain into the graph at ``world_from_session``."""
         kfs = session.key_frames
+        if not kfs:
+            return
         self.graph.add_session(session.name, world_from_session @ kfs[0].odometry_pose, anchor)
         session.inserted = True
         session.world_from_session = world_from_session
         for kf in kfs[1:]:
             self._add_node(session, kf)
-        accepted_votes = {id(p) for p in agreeing or []}
-        for p in session.pending:
-            if p.world_from_session is not None and id(p) not in accepted_votes:
-                reason = (
-                    "inconsistent with the session link"
-                    if agreeing is not None
-                    else "too few consistent loops to link the session"
-                )
-                self.loops.append(replace(p.record, accepted=False, reason=reason))
-            else:
-                self._add_loop(p.record, p.information)
-        session.pending = []
-
-    # --- results --------------------------------------------------------------------------------
 
     def key_frames(self, session: str) -> list[KeyFrame]:
         return list(self.sessions[session].key_frames)
