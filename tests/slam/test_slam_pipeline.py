@@ -199,3 +199,33 @@ def test_bad_inputs_are_clear_errors(reader, tmp_path):
         SlamPipeline(reader, cfg, progress=False).run([])
     with pytest.raises(CheckpointError, match=r"missing\.pt"):
         load_recognizer(str(tmp_path / "missing.pt"), None)
+
+
+def test_unplaced_sessions_chain_into_the_map_as_a_group(sim_dataroot):
+    # Three consecutive scenes. Session 2 only ever matches session 3 (never the map); session 3
+    # later matches session 1. Session 2 must still end up in the map, on its ground truth.
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    reader = NuScenesRadar(sim_dataroot(["schedule.scenes_per_log=3"]), "v1.0-mini")
+    names = [s.name for s in reader.scenes()]
+    assert len(names) == 3
+
+    def accept(pipeline, q, c):
+        s1, s2, s3 = names
+        if q.session == s3 and c.session == s2 and q.index <= 1:
+            return _true_pose(pipeline, q, c)
+        if q.session == s3 and c.session == s1 and 3 <= q.index <= 4:
+            return _true_pose(pipeline, q, c)
+        return None
+
+    cfg = SlamConfig()
+    cfg.loops.num_candidates = 50
+    cfg.loops.min_key_frames_between_loops = 0
+    cfg.loops.unlinked_candidates_per_key_frame = 50
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    res = pipeline.run(names)
+    assert len(res.components) == 1
+    for s in res.sessions:
+        err = np.linalg.norm(s.slam_poses[:, :2, 3] - s.gt_poses[:, :2, 3], axis=1)
+        assert err.max() < 1.0, s.name
