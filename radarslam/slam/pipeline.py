@@ -223,7 +223,7 @@ class SlamPipeline:
 
         session = _Session(info.name, len(self.sessions))
         self.sessions[info.name] = session
-        group = _Group(len(self.groups), {info.name: np.eye(4)})
+        group = _Group(session.index, {info.name: np.eye(4)})  # unique: merges delete groups
         self.groups[group.index] = group
         session.group = group.index
         first = session.index == 0

@@ -229,3 +229,27 @@ def test_unplaced_sessions_chain_into_the_map_as_a_group(sim_dataroot):
     for s in res.sessions:
         err = np.linalg.norm(s.slam_poses[:, :2, 3] - s.gt_poses[:, :2, 3], axis=1)
         assert err.max() < 1.0, s.name
+
+
+def test_a_session_after_a_merge_keeps_its_own_group(sim_dataroot):
+    # Sessions 1 and 2 merge before session 3 starts; session 3 never links and must stay a
+    # separate component with its own group.
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    reader = NuScenesRadar(sim_dataroot(["schedule.scenes_per_log=3"]), "v1.0-mini")
+    names = [s.name for s in reader.scenes()]
+
+    def accept(pipeline, q, c):  # sessions 1 and 2 merge before session 3 starts
+        s1, s2, _ = names
+        return _true_pose(pipeline, q, c) if (q.session, c.session) == (s2, s1) else None
+
+    cfg = SlamConfig()
+    cfg.loops.num_candidates = 50
+    cfg.loops.min_key_frames_between_loops = 0
+    cfg.loops.unlinked_candidates_per_key_frame = 50
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    res = pipeline.run(names)
+    groups = [pipeline.sessions[n].group for n in names]
+    assert groups[0] == groups[1] != groups[2]
+    assert sorted(len(c.sessions) for c in res.components) == [1, 2]
