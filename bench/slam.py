@@ -20,12 +20,16 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import sys
 import time
 from pathlib import Path
 
-import numpy as np
+# bench/place_recognition.py would shadow the place_recognition package.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-import radarslam  # noqa: F401  (sets the OpenMP wait policy before torch/open3d load)
+import numpy as np  # noqa: E402
+
+import radarslam  # noqa: E402, F401  (sets the OpenMP wait policy before torch/open3d load)
 
 
 def joint_ate(est: np.ndarray, gt: np.ndarray) -> float:
