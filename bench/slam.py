@@ -133,7 +133,14 @@ def main() -> None:
     pipeline = SlamPipeline(reader, config, progress=True)
     result = pipeline.run(scenes)
     wall = time.perf_counter() - t0
-    write_results(args.out, result.sessions, result.loops, result.static_map, plots=True)
+    write_results(
+        args.out,
+        result.sessions,
+        result.loops,
+        result.static_map,
+        plots=True,
+        components=[c.sessions for c in result.components],
+    )
     report = evaluate_results(args.out, load_config(EvalConfig, CONFIG_DIR / "eval/default.yaml"))
     loops = report.loops.as_dict() if report.loops is not None else {}
 

@@ -20,7 +20,7 @@ from pydantic import Field
 from radarslam.config import StrictModel
 from radarslam.errors import DataError
 from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth, evaluate_loops
-from radarslam.eval.metrics import ate, drift, path_lengths_m, rpe, to_xy_yaw
+from radarslam.eval.metrics import align_se2, ate, drift, path_lengths_m, rpe, to_xy_yaw
 from radarslam.io.atomic import write_json_atomic
 from radarslam.io.trajectory import read_tum
 from radarslam.slam.records import read_loops_csv
@@ -100,6 +100,8 @@ class ResultsFolder:
     sessions: list[str]  # processing order
     trajectories: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]  # session -> kind -> (t, T)
     loops_path: Path | None
+    #: Map components from run.json (the anchored map first), None when not recorded.
+    components: list[list[str]] | None = None
 
 
 def read_results(results_dir: str | Path) -> ResultsFolder:
@@ -121,7 +123,21 @@ def read_results(results_dir: str | Path) -> ResultsFolder:
         raise DataError(f"{d}: sessions {no_est} have ground truth but no estimate")
     order = _session_order(d, found)
     loops = d / "loops.csv"
-    return ResultsFolder(d, order, found, loops if loops.is_file() else None)
+    return ResultsFolder(d, order, found, loops if loops.is_file() else None, _components(d, found))
+
+
+def _components(d: Path, found: dict) -> list[list[str]] | None:
+    run = d / "run.json"
+    if not run.is_file():
+        return None
+    comps = json.loads(run.read_text()).get("components")
+    if comps is None:
+        return None
+    if not isinstance(comps, list) or not all(
+        isinstance(c, list) and all(isinstance(s, str) and s in found for s in c) for c in comps
+    ):
+        raise DataError(f"{run}: 'components' must be lists of session names with trajectories")
+    return comps
 
 
 def _session_order(d: Path, found: dict) -> list[str]:
@@ -225,6 +241,7 @@ def evaluate_results(
             pooled[kind]["first"].append(ate(e, r, align="first").errors_m)
             pooled[kind]["est"].append(e)
             pooled[kind]["ref"].append(r)
+            pooled[kind].setdefault("session", []).append(s)
     run: dict[str, dict[str, float]] = {}
     for kind in KINDS:
         p = pooled[kind]
@@ -232,13 +249,25 @@ def evaluate_results(
             continue
         all_err = np.concatenate(p["ate"])
         first_err = np.concatenate(p["first"])
-        joint = ate(np.concatenate(p["est"]), np.concatenate(p["ref"]), align="se2")
+        # SLAM sessions outside the anchored map live in their own frames: one alignment
+        # across them would measure nothing, so the SLAM joint ATE covers the anchored map.
+        in_joint = [
+            i
+            for i, s in enumerate(p["session"])
+            if kind != "slam" or folder.components is None or s in folder.components[0]
+        ]
+        joint = ate(
+            np.concatenate([p["est"][i] for i in in_joint]),
+            np.concatenate([p["ref"][i] for i in in_joint]),
+            align="se2",
+        )
         run[kind] = {
             "num_sessions": len(p["ate"]),
             "num_poses": int(all_err.size),
             "ate_rmse_m": float(np.sqrt(np.mean(all_err**2))),
             "ate_first_rmse_m": float(np.sqrt(np.mean(first_err**2))),
             "ate_joint_rmse_m": joint.rmse_m,
+            "joint_sessions": len(in_joint),
         }
     loop_metrics = None
     if folder.loops_path is not None:
@@ -259,6 +288,32 @@ def evaluate_results(
         if cfg.plots:
             write_plots(folder, report)
     return report
+
+
+def _display_slam(folder: ResultsFolder, session: str) -> np.ndarray | None:
+    """SLAM positions to draw: as estimated in the anchored map; a session of another component
+    (its own frame) is drawn after one SE(2) alignment of its whole component to ground truth."""
+    tr = folder.trajectories[session].get("slam")
+    if tr is None:
+        return None
+    comps = folder.components
+    if comps is None or session in comps[0]:
+        return tr[1][:, :2, 3]
+    comp = next((c for c in comps if session in c), [session])
+    est = np.concatenate([folder.trajectories[s]["slam"][1] for s in comp])
+    ref = np.concatenate([folder.trajectories[s]["gt"][1] for s in comp])
+    if len(est) != len(ref):
+        return tr[1][:, :2, 3]
+    return align_se2(est, ref).apply(to_xy_yaw(tr[1]))[:, :2]
+
+
+def _display_odometry(folder: ResultsFolder, session: str) -> np.ndarray | None:
+    """Odometry positions to draw, first pose put on the ground truth's (shows its drift)."""
+    tr, gt = folder.trajectories[session].get("odometry"), folder.trajectories[session]["gt"]
+    if tr is None or not len(tr[1]) or not len(gt[1]):
+        return None
+    start = gt[1][0] @ np.linalg.inv(tr[1][0])
+    return (start @ tr[1])[:, :2, 3]
 
 
 def write_plots(folder: ResultsFolder, report: EvalReport) -> None:
@@ -290,8 +345,14 @@ def write_plots(folder: ResultsFolder, report: EvalReport) -> None:
             b = lookup.get(lp.candidate.session, {}).get(lp.candidate_timestamp_us)
             if a is not None and b is not None:
                 segments.append(LoopSegment(a, b, j.correct))
+    in_map = folder.components[0] if folder.components else folder.sessions
     trajs = [
-        TrajectoryPlotData(s, xy("slam", s), xy("gt", s), xy("odometry", s))
+        TrajectoryPlotData(
+            s if s in in_map else f"{s} (own map, aligned to GT)",
+            _display_slam(folder, s),
+            xy("gt", s),
+            _display_odometry(folder, s),
+        )
         for s in folder.sessions
     ]
     plots = folder.path / "plots"

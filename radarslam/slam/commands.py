@@ -88,7 +88,12 @@ def run_slam(
     result = pipeline.run(infos)
     wall_s = time.perf_counter() - t0
     write_results(
-        out, result.sessions, result.loops, result.static_map, config_yaml=dump_config(config)
+        out,
+        result.sessions,
+        result.loops,
+        result.static_map,
+        config_yaml=dump_config(config),
+        components=[c.sessions for c in result.components],  # the anchored map first
     )
     t = result.timings
     timing = {

@@ -98,6 +98,7 @@ def write_results(
     static_map: StaticMap | None = None,
     config_yaml: str | None = None,
     plots: bool = True,
+    components: Sequence[Sequence[str]] | None = None,
 ) -> Path:
     """Write everything a run produced; ``radarslam eval`` reads it back."""
     d = Path(results_dir)
@@ -120,5 +121,8 @@ def write_results(
             )
     if config_yaml is not None:
         write_text_atomic(d / "config.yaml", config_yaml)
-    write_json_atomic(d / "run.json", {"format": RESULTS_FORMAT, "sessions": names})
+    run = {"format": RESULTS_FORMAT, "sessions": names}
+    if components is not None:  # the anchored map first; the others live in their own frames
+        run["components"] = [list(c) for c in components]
+    write_json_atomic(d / "run.json", run)
     return d

@@ -133,3 +133,27 @@ def test_associate_nearest_within_tolerance():
     gt = np.array([0, 100, 200, 300])
     i_e, i_g = associate(np.array([101, 260, 500, 0]), gt, 50)
     assert list(i_e) == [0, 1, 3] and list(i_g) == [1, 3, 0]
+
+
+def test_slam_joint_ate_covers_the_anchored_map_only(tmp_path):
+    # Session "b" never joined the map: its SLAM poses live in their own frame (here 500 m away
+    # and rotated). The joint SLAM ATE must cover the anchored component only.
+    t = np.arange(20, dtype=np.int64) * 500_000 + 1_000_000
+    gt_a = np.stack([se2_to_matrix(0.5 * i, 0.0, 0.0) for i in range(20)])
+    gt_b = np.stack([se2_to_matrix(0.0, 0.5 * i, np.pi / 2) for i in range(20)])
+    off = se2_to_matrix(500.0, -300.0, 1.0)
+    sessions = [
+        SessionResult("a", t, gt_a.copy(), gt_a.copy(), gt_a),
+        SessionResult("b", t + 20_000_000, off @ gt_b, off @ gt_b, gt_b),
+    ]
+    write_results(tmp_path, sessions, components=[["a"], ["b"]], plots=False)
+    report = evaluate_results(tmp_path, EvalConfig(plots=True))
+    assert report.run["slam"]["joint_sessions"] == 1
+    assert report.run["slam"]["ate_joint_rmse_m"] < 1e-6
+    assert report.run["odometry"]["ate_joint_rmse_m"] > 10.0  # odometry frames are unrelated
+    assert (tmp_path / "plots" / "trajectories.png").is_file()
+    with pytest.raises(DataError, match="components"):
+        (tmp_path / "run.json").write_text(
+            json.dumps({"sessions": ["a", "b"], "components": [["c"]]})
+        )
+        evaluate_results(tmp_path, EvalConfig(plots=False))
