@@ -67,6 +67,35 @@ def _channel_index(channel: str) -> int:
         ) from None
 
 
+def points_in_reference(
+    points: np.ndarray,
+    ref_from_sensor: np.ndarray,
+    channel_index: int,
+    sweep_index: int,
+    time_lag_s: float,
+) -> np.ndarray:
+    """One sweep's radar points (:data:`RADAR_DTYPE`) as :data:`ACCUMULATED_DTYPE` in a reference
+    frame: positions transformed, velocity vectors (vx, vy, 0) rotated with them in 3-D (the
+    devkit leaves velocities in each sweep's sensor frame)."""
+    out = np.zeros(len(points), dtype=ACCUMULATED_DTYPE)
+    if not len(points):
+        return out
+    rot = ref_from_sensor[:3, :3]
+    xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+    xyz = xyz @ rot.T + ref_from_sensor[:3, 3]
+    out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    for a, b in (("vx", "vy"), ("vx_comp", "vy_comp")):
+        v = np.column_stack([points[a], points[b], np.zeros(len(points))]).astype(np.float64)
+        v = v @ rot.T
+        out[a], out[b] = v[:, 0], v[:, 1]
+    out["rcs"] = points["rcs"]
+    out["dyn_prop"] = points["dyn_prop"]
+    out["channel"] = channel_index
+    out["sweep"] = sweep_index
+    out["time_lag_s"] = time_lag_s
+    return out
+
+
 class NuScenesRadar:
     """The radar side of one nuScenes version under ``dataroot`` (real or synthetic).
 
@@ -565,22 +594,13 @@ class NuScenesRadar:
                             )
                         keep &= m
                     pts = pts[keep]
-                ref_from_sensor = ref_from_world @ sweep.world_from_sensor
-                out = np.zeros(len(pts), dtype=ACCUMULATED_DTYPE)
-                if len(pts):
-                    rot = ref_from_sensor[:3, :3]
-                    xyz = np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(np.float64)
-                    xyz = xyz @ rot.T + ref_from_sensor[:3, 3]
-                    out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-                    for a, b in (("vx", "vy"), ("vx_comp", "vy_comp")):
-                        v = np.column_stack([pts[a], pts[b], np.zeros(len(pts))]).astype(np.float64)
-                        v = v @ rot.T
-                        out[a], out[b] = v[:, 0], v[:, 1]
-                    out["rcs"] = pts["rcs"]
-                    out["dyn_prop"] = pts["dyn_prop"]
-                    out["channel"] = c
-                    out["sweep"] = k
-                    out["time_lag_s"] = (ref_time_us - sweep.timestamp_us) * 1e-6
+                out = points_in_reference(
+                    pts,
+                    ref_from_world @ sweep.world_from_sensor,
+                    channel_index=c,
+                    sweep_index=k,
+                    time_lag_s=(ref_time_us - sweep.timestamp_us) * 1e-6,
+                )
                 parts.append(out)
                 counts[(RADAR_CHANNELS[c], k)] = len(out)
                 k += 1

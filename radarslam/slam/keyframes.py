@@ -19,6 +19,7 @@ import numpy as np
 
 from radarslam.geometry import invert
 from radarslam.nuscenes.filters import RadarPointFilter
+from radarslam.nuscenes.reader import points_in_reference
 from radarslam.odometry.lie import exp_se2
 from radarslam.types import ACCUMULATED_DTYPE, RADAR_CHANNELS, AccumulatedCloud, RadarSweep
 
@@ -96,22 +97,15 @@ class SweepBuffer:
                 if not keep.any():
                     continue
                 s = item.sweep
-                pts = s.points[keep]
-                ref_from_sensor = ref_from_world @ item.world_from_ego @ s.ego_from_sensor
-                rot, trans = ref_from_sensor[:3, :3], ref_from_sensor[:3, 3]
-                xyz = np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(np.float64)
-                xyz = xyz @ rot.T + trans
-                out = np.empty(len(pts), dtype=ACCUMULATED_DTYPE)
-                out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-                out["rcs"] = pts["rcs"]
-                for a, b in (("vx", "vy"), ("vx_comp", "vy_comp")):
-                    v = np.column_stack([pts[a], pts[b]]).astype(np.float64) @ rot[:2, :2].T
-                    out[a], out[b] = v[:, 0], v[:, 1]
-                out["dyn_prop"] = pts["dyn_prop"]
-                out["channel"] = RADAR_CHANNELS.index(ch)
-                out["sweep"] = k
-                out["time_lag_s"] = (timestamp_us - s.timestamp_us) * 1e-6
-                chunks.append(out)
+                chunks.append(
+                    points_in_reference(
+                        s.points[keep],
+                        ref_from_world @ item.world_from_ego @ s.ego_from_sensor,
+                        channel_index=RADAR_CHANNELS.index(ch),
+                        sweep_index=k,
+                        time_lag_s=(timestamp_us - s.timestamp_us) * 1e-6,
+                    )
+                )
         points = np.concatenate(chunks) if chunks else np.zeros(0, dtype=ACCUMULATED_DTYPE)
         return AccumulatedCloud(
             points=points,

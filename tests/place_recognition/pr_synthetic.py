@@ -1,8 +1,21 @@
-"""Synthetic key-frame positions shared by the split and evaluation tests."""
+"""Synthetic key-frame positions shared by the split and evaluation tests, and the tiny model
+configuration shared by the model and training tests."""
 
 import numpy as np
 
 from place_recognition.dataset import DAY_US
+from place_recognition.models import ModelConfig
+
+#: A 32x32, two-block SE+TE network: real code paths at test speed.
+TINY = ModelConfig(
+    preset="tiny",
+    image_size_px=32,
+    widths=[4, 8],
+    convs_per_block=1,
+    seq_len=3,
+    use_temporal=True,
+    descriptor_dim=16,
+)
 
 BASE_US = 1_532_400_000_000_000
 

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from pr_synthetic import TINY  # the tiny AutoPlace model shared by the model tests
 
 from place_recognition.checkpoint import load_model, read_checkpoint, save_checkpoint
 from place_recognition.models import (
@@ -19,16 +20,6 @@ from place_recognition.models import (
 )
 from radarslam.config import build_config
 from radarslam.errors import CheckpointError, ConfigError
-
-TINY = ModelConfig(
-    preset="tiny",
-    image_size_px=32,
-    widths=[4, 8],
-    convs_per_block=1,
-    seq_len=3,
-    use_temporal=True,
-    descriptor_dim=16,
-)
 
 
 def _occupancy(shape, seed=0, p=0.1):

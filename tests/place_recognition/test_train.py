@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from pr_synthetic import TINY  # the tiny AutoPlace model shared by the model tests
 
 from place_recognition.checkpoint import load_model, read_checkpoint
 from place_recognition.dataset import PreparedData, build_sequences
-from place_recognition.models import ModelConfig, build_model
+from place_recognition.models import build_model
 from place_recognition.train import (
     FrameStore,
     TrainConfig,
@@ -27,15 +28,6 @@ from place_recognition.train import (
 from radarslam.config import build_config
 from radarslam.errors import CheckpointError, ConfigError, DataError
 
-TINY = ModelConfig(
-    preset="tiny",
-    image_size_px=32,
-    widths=[4, 8],
-    convs_per_block=1,
-    seq_len=3,
-    use_temporal=True,
-    descriptor_dim=16,
-)
 # One thread: CPU convolution backward is only bitwise deterministic single-threaded.
 FAST = dict(epochs=4, select_after_epoch=0, patience=0, seed=1234, threads=1, device="cpu")
 
