@@ -318,6 +318,8 @@ class DopplerEstimator:
             sweeps = list(frame.sweeps.values())
         else:
             sweeps = list(frame)
+        c = self.config
+        min_range = max(c.min_range_m, 1e-6)
         rows, rhs, lever, owner = [], [], [], []
         sizes: dict[str, int] = {}
         for k, sw in enumerate(sweeps):
@@ -325,33 +327,49 @@ class DopplerEstimator:
             sizes[sw.channel] = n
             if n == 0:
                 continue
-            u, vr = sweep_doppler(sw)
-            ok = self._usable(sw) & np.isfinite(vr)
-            if not ok.any():
+            # The fields are read once here (not through RadarSweep's properties, which rebuild
+            # the (N, 2) arrays at every access): same u and v_r as sweep_doppler().
+            pts = sw.points
+            x = pts["x"].astype(np.float64)
+            y = pts["y"].astype(np.float64)
+            vx = pts["vx"].astype(np.float64)
+            vy = pts["vy"].astype(np.float64)
+            r = np.sqrt(x * x + y * y)
+            ok = np.isfinite(r) & (r > min_range) & np.isfinite(vx) & np.isfinite(vy)
+            if c.require_unambiguous:
+                ok &= pts["ambig_state"] == 3
+            sel = np.flatnonzero(ok)
+            if not len(sel):
                 continue
-            rot = np.asarray(sw.ego_from_sensor, dtype=np.float64)[:2, :2]
-            t = np.asarray(sw.ego_from_sensor, dtype=np.float64)[:2, 3]
-            ue = u[ok] @ rot.T  # lines of sight in the ego frame
-            perp = np.array([-t[1], t[0]])
-            rows.append(np.column_stack([ue, ue @ perp]))
-            rhs.append(-vr[ok])
-            lever.append(perp)
-            owner.append(np.column_stack([np.full(int(ok.sum()), k), np.flatnonzero(ok)]))
+            rs = r[sel]
+            ux, uy = x[sel] / rs, y[sel] / rs
+            vr = ux * vx[sel] + uy * vy[sel]
+            pose = np.asarray(sw.ego_from_sensor, dtype=np.float64)
+            rot, t = pose[:2, :2], pose[:2, 3]
+            block = np.empty((len(sel), 3))
+            block[:, 0] = ux * rot[0, 0] + uy * rot[0, 1]  # line of sight in the ego frame
+            block[:, 1] = ux * rot[1, 0] + uy * rot[1, 1]
+            block[:, 2] = block[:, 1] * t[0] - block[:, 0] * t[1]  # u . (w x t) / w
+            rows.append(block)
+            rhs.append(-vr)
+            lever.append((-t[1], t[0]))
+            owner.append((k, sel))
         channels = tuple(sw.channel for sw in sweeps)
         if not rows:
             return self._invalid_frame(sizes, channels, 0)
-        a = np.concatenate(rows)
-        b = np.concatenate(rhs)
-        own = np.concatenate(owner)
+        a = np.concatenate(rows) if len(rows) > 1 else rows[0]
+        b = np.concatenate(rhs) if len(rhs) > 1 else rhs[0]
+        counts = [len(r) for r in rhs]
         # Per point, which radar's lever arm: the relative threshold needs each sensor's speed.
-        radar_of = np.repeat(np.arange(len(lever)), [len(r) for r in rhs])
+        radar_of = np.repeat(np.arange(len(lever)), counts)
         inl, x, cov, ego_static, yaw_obs = self._solve_joint(a, b, np.array(lever), radar_of)
         if x is None:
             return self._invalid_frame(sizes, channels, len(a))
         masks = {sw.channel: np.zeros(len(sw), dtype=bool) for sw in sweeps}
-        for k, sw in enumerate(sweeps):
-            sel = inl & (own[:, 0] == k)
-            masks[sw.channel][own[sel, 1]] = True
+        start = 0
+        for (k, sel), cnt in zip(owner, counts, strict=True):
+            masks[sweeps[k].channel][sel] = inl[start : start + cnt]
+            start += cnt
         res = a[inl] @ x - b[inl]
         return EgoMotionFit(
             velocity_mps=x[:2].copy(),
@@ -391,32 +409,50 @@ class DopplerEstimator:
             info[1, 1] = 1.0 / c.lateral_velocity_sigma_mps**2
         return info
 
-    def _solve(self, a: np.ndarray, b: np.ndarray):
-        """Least squares with the priors scaled to the residual variance (information form)."""
+    def _solve(self, a: np.ndarray, b: np.ndarray, ata: np.ndarray | None = None):
+        """Least squares with the priors scaled to the residual variance (information form).
+        ``ata`` = ``a.T @ a`` when the caller has it already."""
         c = self.config
         prior = self._prior()
+        if ata is None:
+            ata = a.T @ a
+        atb = a.T @ b
         # First pass fixes the residual variance, which the priors (given in physical sigmas) must
-        # be expressed against, since _lstsq_cov multiplies (A^T A + P)^-1 by that variance.
-        x, _, res = _lstsq_cov(a, b, c.noise_floor_mps, prior_info=prior * c.noise_floor_mps**2)
+        # be expressed against, since the covariance is that variance times (A^T A + P)^-1.
+        x = np.linalg.solve(ata + prior * c.noise_floor_mps**2, atb)
+        res = b - a @ x
         dof = len(b) - 3
         var = max(float(res @ res) / dof if dof > 0 else 0.0, c.noise_floor_mps**2)
-        ata = a.T @ a + prior * var
-        x = np.linalg.solve(ata, a.T @ b)
-        cov = var * np.linalg.inv(ata)
+        inv = np.linalg.inv(ata + prior * var)
+        x = inv @ atb
+        cov = var * inv
         return x, 0.5 * (cov + cov.T)
 
-    def _observability(self, a: np.ndarray) -> tuple[bool, bool]:
-        """(velocity observable, yaw rate observable) from the geometry and the lateral prior."""
-        if len(a) < 2 or not _observable(a[:, :2]):
+    def _observability(self, a: np.ndarray, ata: np.ndarray | None = None) -> tuple[bool, bool]:
+        """(velocity observable, yaw rate observable) from the geometry and the lateral prior.
+        ``ata`` = ``a.T @ a`` when the caller has it already. 2x2 algebra in closed form: this
+        runs several times per frame and np.linalg's per-call overhead dominated it."""
+        n = len(a)
+        if n < 2:
+            return False, False
+        if ata is None:
+            ata = a.T @ a
+        # Smallest eigenvalue of the direction block A_v^T A_v / n (as _observable()).
+        p, q, r = ata[0, 0] / n, ata[0, 1] / n, ata[1, 1] / n
+        smallest = 0.5 * (p + r) - np.hypot(0.5 * (p - r), q)
+        if not smallest > _MIN_DIRECTION_EIGEN:
             return False, False
         c = self.config
         # Information of the data at the noise floor plus the lateral prior (not the weak yaw
         # prior, which exists only to keep an unobservable yaw rate finite).
-        info = a.T @ a / c.noise_floor_mps**2
+        info = ata / c.noise_floor_mps**2
+        i00, i01, i11 = info[0, 0], info[0, 1], info[1, 1]
         if c.lateral_velocity_sigma_mps is not None:
-            info[1, 1] += 1.0 / c.lateral_velocity_sigma_mps**2
+            i11 = i11 + 1.0 / c.lateral_velocity_sigma_mps**2
         # Yaw-rate information left once (vx, vy) are estimated (Schur complement).
-        schur = info[2, 2] - info[2, :2] @ np.linalg.solve(info[:2, :2], info[:2, 2])
+        g0, g1 = info[0, 2], info[1, 2]
+        det = i00 * i11 - i01 * i01
+        schur = info[2, 2] - (g0 * (i11 * g0 - i01 * g1) + g1 * (i00 * g1 - i01 * g0)) / det
         return True, bool(schur > 1.0 / _YAW_OBSERVABLE_SIGMA_RADPS**2)
 
     def _solve_joint(self, a: np.ndarray, b: np.ndarray, levers: np.ndarray, radar_of: np.ndarray):
@@ -427,13 +463,14 @@ class DopplerEstimator:
         slow = np.abs(b) < c.static_speed_mps
         if slow.sum() > c.static_fraction * n:
             a_s, b_s = a[slow], b[slow]
-            vel_ok, yaw_ok = self._observability(a_s)
+            ata_s = a_s.T @ a_s
+            vel_ok, yaw_ok = self._observability(a_s, ata_s)
             if c.static_velocity == "refit" and vel_ok and len(a_s) >= c.min_points:
-                x, cov = self._solve(a_s, b_s)
+                x, cov = self._solve(a_s, b_s, ata_s)
             else:
                 x = np.zeros(3)
                 var = max(float(np.mean(b_s**2)), c.noise_floor_mps**2)
-                ata = a_s.T @ a_s + self._prior() * var + np.eye(3) * (var / _HUGE_VARIANCE)
+                ata = ata_s + self._prior() * var + np.eye(3) * (var / _HUGE_VARIANCE)
                 cov = var * np.linalg.inv(ata)
                 cov = 0.5 * (cov + cov.T)
             return slow, x, cov, True, yaw_ok
@@ -483,9 +520,13 @@ class DopplerEstimator:
         inl = inliers(best_x)
         x, cov = best_x, np.eye(3) * _HUGE_VARIANCE
         for _ in range(2):
-            if inl.sum() < c.min_points or not self._observability(a[inl])[0]:
+            if inl.sum() < c.min_points:
                 return None, None, None, False, False
-            x, cov = self._solve(a[inl], b[inl])
+            a_i = a[inl]
+            ata_i = a_i.T @ a_i
+            if not self._observability(a_i, ata_i)[0]:
+                return None, None, None, False, False
+            x, cov = self._solve(a_i, b[inl], ata_i)
             inl = inliers(x)
         yaw_ok = self._observability(a[inl])[1]
         return inl, x, cov, False, yaw_ok

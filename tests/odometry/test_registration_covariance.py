@@ -1,0 +1,108 @@
+import numpy as np
+import pytest
+
+from radarslam.odometry.doppler import DopplerConfig, DopplerEstimator
+from radarslam.odometry.lie import exp_se2
+from radarslam.odometry.registration import ScanToMapRegistration
+
+
+def _reference_covariance(cloud, source, pose, max_dist, k, point_sigma):
+    """The point-to-line Hessian written out with np.linalg (stacked eigh, explicit Jacobians)."""
+    from scipy.spatial import cKDTree
+
+    rot, t = pose[:2, :2], pose[:2, 3]
+    pb = source[:, :2]
+    pw = pb @ rot.T + t
+    dist, idx = cKDTree(cloud).query(pw, k=k)
+    ok = dist[:, 0] < max_dist
+    nb = cloud[idx[ok]]
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    scatter = np.einsum("mki,mkj->mij", centred, centred)
+    vals, vecs = np.linalg.eigh(scatter)
+    pw, pb = pw[ok], pb[ok]
+    rows, res = [], []
+    for i in range(len(pw)):
+        jac = rot @ np.array([[1.0, 0.0, -pb[i, 1]], [0.0, 1.0, pb[i, 0]]])
+        d = pw[i] - nb[i, 0]
+        if vals[i, 1] > 4.0 * max(vals[i, 0], 1e-12):
+            n = vecs[i, :, 0]
+            rows.append(n @ jac)
+            res.append(n @ d)
+        else:
+            rows.extend(jac)
+            res.extend(d)
+    jac, r = np.array(rows), np.array(res)
+    var = max(np.mean(r**2), point_sigma**2)
+    return np.linalg.inv(jac.T @ jac / var + np.eye(3) * 1e-6), int(ok.sum())
+
+
+def _registration(cloud):
+    reg = ScanToMapRegistration(
+        voxel_size_m=1.0,
+        max_range_m=100.0,
+        max_points_per_voxel=20,
+        max_num_iterations=50,
+        convergence_criterion=1e-4,
+        threshold="fixed",
+        fixed_sigma_m=1.0,
+        min_sigma_m=0.5,
+        initial_sigma_m=2.0,
+        min_motion_m=0.1,
+        point_sigma_m=0.1,
+        line_neighbors=5,
+        mirror_every=1,
+    )
+    reg.update(np.column_stack([cloud, np.zeros(len(cloud))]), np.eye(4))
+    return reg
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_closed_form_covariance_matches_eigh_reference(seed):
+    rng = np.random.default_rng(seed)
+    # Two walls (lines) and a few compact reflector clusters (point-to-point rows).
+    wall_a = np.column_stack([rng.uniform(-40, 40, 300), 8 + rng.normal(0, 0.05, 300)])
+    wall_b = np.column_stack([25 + rng.normal(0, 0.05, 200), rng.uniform(-30, 30, 200)])
+    poles = (rng.uniform(-30, 30, (15, 1, 2)) + rng.normal(0, 0.08, (15, 12, 2))).reshape(-1, 2)
+    cloud = np.concatenate([wall_a, wall_b, poles])
+    reg = _registration(cloud)
+    mirror = reg.map.point_cloud()[:, :2]  # the map keeps what its voxels hold
+    pose = exp_se2(np.array([0.4, -0.3, 0.02]))
+    body = np.linalg.inv(pose)
+    pick = rng.choice(len(mirror), 120, replace=False)
+    world = mirror[pick] + rng.normal(0, 0.1, (120, 2))
+    source = world @ body[:2, :2].T + body[:2, 3]
+    source = np.column_stack([source, np.zeros(len(source))])
+    cov, matched, _ = reg._covariance(source, pose, 3.0)
+    ref, ref_matched = _reference_covariance(mirror, source, pose, 3.0, 5, 0.1)
+    assert matched == ref_matched > 100
+    np.testing.assert_allclose(cov, 0.5 * (ref + ref.T), rtol=1e-9, atol=1e-15)
+
+
+def test_covariance_of_a_single_wall_is_unconstrained_along_it():
+    rng = np.random.default_rng(3)
+    wall = np.column_stack([rng.uniform(-50, 50, 600), 10 + rng.normal(0, 0.03, 600)])
+    reg = _registration(wall)
+    source = np.column_stack([rng.uniform(-40, 40, 80), np.full(80, 10.0), np.zeros(80)])
+    cov, matched, _ = reg._covariance(source, np.eye(4), 3.0)
+    assert matched == 80
+    # Across the wall (y) a few cm; along it (x) orders of magnitude larger.
+    assert np.sqrt(cov[1, 1]) < 0.05 and cov[0, 0] > 1e3 * cov[1, 1]
+
+
+def test_observability_closed_form_matches_linalg():
+    rng = np.random.default_rng(4)
+    for lateral in (None, 0.1):
+        est = DopplerEstimator(DopplerConfig(lateral_velocity_sigma_mps=lateral))
+        c = est.config
+        for spread in (1e-3, 0.05, 0.5, 3.0):
+            ang = rng.normal(0, spread, 40)
+            a = np.column_stack([np.cos(ang), np.sin(ang), rng.normal(0, 1.0, 40) * spread])
+            got = est._observability(a)
+            eig = np.linalg.eigvalsh(a[:, :2].T @ a[:, :2] / len(a))[0]
+            info = a.T @ a / c.noise_floor_mps**2
+            if lateral is not None:
+                info[1, 1] += 1.0 / lateral**2
+            schur = info[2, 2] - info[2, :2] @ np.linalg.solve(info[:2, :2], info[:2, 2])
+            assert got[0] == (eig > 1e-3)
+            if got[0]:
+                assert got[1] == (schur > 1.0 / 0.5**2)
