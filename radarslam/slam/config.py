@@ -19,6 +19,10 @@ class KeyFrameConfig(StrictModel):
     #: A verification local map is the key frame's cloud plus this many neighbours on each side
     #: (only past ones for the query, which has no future yet), placed with odometry.
     local_map_neighbors: int = Field(4, ge=0, le=50)
+    #: Which dynamic-point removal cleans the key-frame clouds: the odometry's joint Doppler fit
+    #: of every frame (free: it is already computed) or AutoPlace's DPR run again per sweep
+    #: (Algorithm 1 of the paper, as the place-recognition training data was made).
+    dynamic_points: Literal["odometry", "dpr"] = "odometry"
 
 
 class LoopDetectionConfig(StrictModel):
@@ -41,6 +45,14 @@ class LoopDetectionConfig(StrictModel):
     #: verification searches only this far around the prediction, at its heading: ~4x cheaper
     #: than the global search, and a false match elsewhere cannot be accepted.
     guided_search_radius_m: float = Field(8.0, gt=0.0)
+    #: Proximity search: a key frame whose group (the map, or sessions linked to each other)
+    #: already holds key frames within this radius of its predicted pose is registered against
+    #: the nearest of them, guided by the prediction, without waiting for place recognition.
+    #: This is what keeps loop closures coming at every key frame of a revisit once a session is
+    #: linked; place recognition is what links it. None: off.
+    proximity_radius_m: float | None = Field(10.0, gt=0.0)
+    #: Proximity candidates verified per key frame (nearest first, one per other session).
+    proximity_candidates: int = Field(1, ge=1, le=10)
     #: Between two sessions already in the map, a verified loop that moves the query farther than
     #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
     map_consistency_m: float = Field(3.0, gt=0.0)

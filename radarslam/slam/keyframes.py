@@ -28,6 +28,7 @@ from radarslam.types import ACCUMULATED_DTYPE, RADAR_CHANNELS, AccumulatedCloud,
 class _BufferedSweep:
     sweep: RadarSweep
     world_from_ego: np.ndarray  # estimated pose of the ego at the sweep's own timestamp
+    static: np.ndarray | None = None  # the odometry's static-point mask, when it gave one
     mask: np.ndarray | None = None  # filter & DPR mask, computed once, when first needed
 
 
@@ -58,15 +59,34 @@ class SweepBuffer:
         for q in self._sweeps.values():
             q.clear()
 
-    def add_frame(self, frame, world_from_ego: np.ndarray, twist: np.ndarray) -> None:
-        """Buffer a frame's sweeps; ``twist`` (vx, vy, yaw_rate) de-skews each to its own time."""
+    def add_frame(
+        self,
+        frame,
+        world_from_ego: np.ndarray,
+        twist: np.ndarray,
+        static_masks: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        """Buffer a frame's sweeps; ``twist`` (vx, vy, yaw_rate) de-skews each to its own time.
+
+        ``static_masks`` (channel -> bool per point, e.g. the odometry's joint Doppler inliers)
+        replace ``point_mask`` for those sweeps: the frame's dynamic points are then removed by
+        the fit the odometry already made instead of a second RANSAC per sweep.
+        """
         for ch, sweep in frame.sweeps.items():
             if ch not in self._sweeps:
                 continue
             self._calibration[ch] = sweep.ego_from_sensor
             dt_s = (sweep.timestamp_us - frame.timestamp_us) * 1e-6
             pose = world_from_ego @ exp_se2(np.asarray(twist, dtype=np.float64) * dt_s)
-            self._sweeps[ch].append(_BufferedSweep(sweep, pose))
+            static = None
+            if static_masks is not None and ch in static_masks:
+                static = np.asarray(static_masks[ch], dtype=bool)
+                if static.shape != (len(sweep),):
+                    raise ValueError(
+                        f"static mask of {ch} has shape {static.shape}, "
+                        f"the sweep has {len(sweep)} points"
+                    )
+            self._sweeps[ch].append(_BufferedSweep(sweep, pose, static))
 
     def _mask(self, item: _BufferedSweep) -> np.ndarray:
         if item.mask is None:
@@ -74,7 +94,9 @@ class SweepBuffer:
             keep = self.point_filter.mask(pts)
             r = np.hypot(pts["x"], pts["y"])
             keep &= np.isfinite(r) & (r >= self.min_distance_m)
-            if self.point_mask is not None and keep.any():
+            if item.static is not None:
+                keep &= item.static
+            elif self.point_mask is not None and keep.any():
                 keep &= np.asarray(self.point_mask(item.sweep), dtype=bool)
             item.mask = keep
         return item.mask

@@ -87,10 +87,13 @@ def voxel_downsample_2d(xy: np.ndarray, voxel_m: float) -> np.ndarray:
     if len(xy) == 0:
         return xy
     cells = np.floor(xy / voxel_m).astype(np.int64)
-    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    out = np.zeros((len(counts), 2))
-    np.add.at(out, inverse, xy)
+    # One int64 key per cell: np.unique over rows (axis=0) is ~20x slower than over scalars.
+    cells -= cells.min(axis=0)
+    keys = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    out = np.column_stack(
+        [np.bincount(inverse, weights=xy[:, k], minlength=len(counts)) for k in range(2)]
+    )
     return out / counts[:, None]
 
 
@@ -169,17 +172,20 @@ class LoopVerifier:
                 guess,
                 t0,
             )
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(c)  # the candidate's, shared by every scoring below
         best = None
         for hyp in self._hypotheses(q, c, guess):
             pose = self._icp(q, c, hyp.pose)
-            fitness, rmse, _ = self._score(q, c, pose, cfg.max_correspondence_m)
+            fitness, rmse, _ = self._score(q, c, pose, cfg.max_correspondence_m, tree)
             key = (fitness, -rmse)
             if best is None or key > best[0]:
                 best = (key, pose, fitness, rmse, hyp.heading_deg)
         assert best is not None
         _, pose, fitness, rmse, heading = best
         overlap = self._overlap(q, c, pose)
-        info = self._information(q, c, pose, rmse)
+        info = self._information(q, c, pose, rmse, tree)
         reasons = []
         if fitness < cfg.min_fitness:
             reasons.append(f"fitness {fitness:.2f} < {cfg.min_fitness}")
@@ -218,17 +224,21 @@ class LoopVerifier:
         cfg = self.config
         steps = max(1, round(360.0 / cfg.heading_step_deg))
         guess_yaw = math.atan2(guess[1, 0], guess[0, 0])
-        hyps = []
-        grid = _LikelihoodGrid(c, cfg.grid_cell_m) if cfg.correlative_search else None
+        poses, headings = [], []
         for n in range(steps):
             dh = n * 360.0 / steps
             yaw = guess_yaw + math.radians(dh)
-            pose = se2_to_matrix(guess[0, 3], guess[1, 3], yaw)
-            score = 0.0
-            if grid is not None and cfg.search_radius_m > 0:
-                shift, score = grid.best_shift(_transform(q, pose), cfg.search_radius_m)
+            poses.append(se2_to_matrix(guess[0, 3], guess[1, 3], yaw))
+            headings.append(dh if dh <= 180 else dh - 360)
+        scores = [0.0] * steps
+        grid = None
+        if cfg.correlative_search and cfg.search_radius_m > 0:
+            grid = _LikelihoodGrid(c, cfg.grid_cell_m)
+            found = grid.best_shifts([_transform(q, p) for p in poses], cfg.search_radius_m)
+            for pose, (shift, _) in zip(poses, found, strict=True):
                 pose[:2, 3] += shift
-            hyps.append(_Hypothesis(pose, dh if dh <= 180 else dh - 360, score))
+            scores = [score for _, score in found]
+        hyps = [_Hypothesis(p, h, sc) for p, h, sc in zip(poses, headings, scores, strict=True)]
         if grid is not None:
             hyps.sort(key=lambda h: -h.score)
             hyps = hyps[: cfg.refine_top_k]
@@ -286,11 +296,13 @@ class LoopVerifier:
         )
         return np.asarray(res.T_target_source, dtype=np.float64)
 
-    def _score(self, q, c, pose, max_corr):
-        from scipy.spatial import cKDTree
+    def _score(self, q, c, pose, max_corr, tree=None):
+        if tree is None:
+            from scipy.spatial import cKDTree
 
+            tree = cKDTree(c)
         moved = _transform(q, pose)
-        d, idx = cKDTree(c).query(moved, distance_upper_bound=max_corr)
+        d, idx = tree.query(moved, distance_upper_bound=max_corr)
         ok = np.isfinite(d)
         fitness = float(ok.mean())
         rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("inf")
@@ -299,16 +311,24 @@ class LoopVerifier:
     def _overlap(self, q, c, pose) -> float:
         """Shared occupied cells / the smaller map's occupied cells, in the candidate frame."""
         cell = self.config.overlap_cell_m
-        qc = {tuple(v) for v in np.floor(_transform(q, pose) / cell).astype(np.int64)}
-        cc = {tuple(v) for v in np.floor(c / cell).astype(np.int64)}
-        return len(qc & cc) / max(1, min(len(qc), len(cc)))
+        qc = np.floor(_transform(q, pose) / cell).astype(np.int64)
+        cc = np.floor(c / cell).astype(np.int64)
+        lo = np.minimum(qc.min(axis=0), cc.min(axis=0))
+        width = int(max(qc[:, 1].max(), cc[:, 1].max()) - lo[1]) + 1
 
-    def _information(self, q, c, pose, rmse) -> np.ndarray:
+        def keys(cells):
+            return np.unique((cells[:, 0] - lo[0]) * width + (cells[:, 1] - lo[1]))
+
+        kq, kc = keys(qc), keys(cc)
+        shared = len(np.intersect1d(kq, kc, assume_unique=True))
+        return shared / max(1, min(len(kq), len(kc)))
+
+    def _information(self, q, c, pose, rmse, tree=None) -> np.ndarray:
         """Point-to-point Hessian (left perturbation in the candidate frame), scaled by the inlier
         RMSE, plus the floor covariance, then moved to gtsam's right perturbation of the
         ``candidate_from_query`` measurement."""
         cfg = self.config
-        _, _, (moved, _) = self._score(q, c, pose, cfg.max_correspondence_m)
+        _, _, (moved, _) = self._score(q, c, pose, cfg.max_correspondence_m, tree)
         if len(moved) < 3:
             return np.zeros((3, 3))
         # d(p')/d(tx, ty, theta) for p' = exp(xi) p: [[1, 0, -y], [0, 1, x]]
@@ -354,28 +374,39 @@ class _LikelihoodGrid:
         )
         self.grid = blur
 
-    def best_shift(self, q: np.ndarray, radius_m: float) -> tuple[np.ndarray, float]:
-        """Translation (2,) of the query points (in the candidate frame) maximising the summed
-        grid likelihood within +-radius_m, and that score normalised by the query size."""
+    def best_shifts(
+        self, queries: list[np.ndarray], radius_m: float
+    ) -> list[tuple[np.ndarray, float]]:
+        """For each query (points in the candidate frame), the translation (2,) within
+        +-radius_m maximising the summed grid likelihood, and that score normalised by the
+        query's occupied cells. One FFT of the grid serves every query (heading hypotheses)."""
+        from scipy import fft
+
         r = math.ceil(radius_m / self.cell)
-        qi = np.floor((q - self.origin) / self.cell).astype(np.int64)
-        # query occupancy on a grid anchored at (min - r) so shifts in [-r, r] stay non-negative
-        base = qi.min(axis=0) - r
-        qi = qi - base
-        qshape = qi.max(axis=0) + 1 + r
-        qocc = np.zeros(qshape)
-        qocc[qi[:, 0], qi[:, 1]] = 1.0
-        # score(s) = sum_p qocc(p) * grid(p + base + s)
-        full = tuple(int(v) for v in np.array(self.grid.shape) + qshape)
-        f = np.fft.rfft2(self.grid, full) * np.conj(np.fft.rfft2(qocc, full))
-        corr = np.fft.irfft2(f, full)
-        # corr[k] = sum_p grid(p + k) qocc(p) with k = base + s (indices mod full)
-        best_score, best_s = -1.0, np.zeros(2)
+        rasters = []
+        for q in queries:
+            qi = np.floor((q - self.origin) / self.cell).astype(np.int64)
+            # anchored at (min - r) so that shifts in [-r, r] keep indices non-negative
+            base = qi.min(axis=0) - r
+            rasters.append((qi - base, base))
+        qshape = np.max([qi.max(axis=0) + 1 + r for qi, _ in rasters], axis=0)
+        full = tuple(
+            fft.next_fast_len(int(n), real=True) for n in np.array(self.grid.shape) + qshape
+        )
+        qocc = np.zeros((len(rasters), *full))
+        for k, (qi, _) in enumerate(rasters):
+            qocc[k, qi[:, 0], qi[:, 1]] = 1.0
+        # score(s) = sum_p qocc(p) grid(p + base + s): a cross-correlation, circular over `full`,
+        # which is large enough that no shift in the window wraps around.
+        spec = fft.rfft2(self.grid, full)[None] * np.conj(fft.rfft2(qocc, axes=(-2, -1)))
+        corr = fft.irfft2(spec, full, axes=(-2, -1))
         sx = np.arange(-r, r + 1)
-        kx = (base[0] + sx) % full[0]
-        ky = (base[1] + sx) % full[1]
-        window = corr[np.ix_(kx, ky)]
-        ij = np.unravel_index(int(np.argmax(window)), window.shape)
-        best_score = float(window[ij])
-        best_s = np.array([sx[ij[0]], sx[ij[1]]], dtype=np.float64) * self.cell
-        return best_s, best_score / max(1.0, float(qocc.sum()))
+        out = []
+        for k, (_, base) in enumerate(rasters):
+            kx = (base[0] + sx) % full[0]
+            ky = (base[1] + sx) % full[1]
+            window = corr[k][np.ix_(kx, ky)]
+            ij = np.unravel_index(int(np.argmax(window)), window.shape)
+            shift = np.array([sx[ij[0]], sx[ij[1]]], dtype=np.float64) * self.cell
+            out.append((shift, float(window[ij]) / max(1.0, float(qocc[k].sum()))))
+        return out

@@ -30,6 +30,7 @@ components, not forced into the map.
 
 from __future__ import annotations
 
+import bisect
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
@@ -88,6 +89,11 @@ class _Session:
     inserted: bool = False
     world_from_session: np.ndarray | None = None  # where the chain was put in the map
     last_loop_kf: int = -(10**9)
+    odometry_xy: list[np.ndarray] = field(default_factory=list)  # key-frame positions
+    timestamps_us: list[int] = field(default_factory=list)  # of the key frames, increasing
+
+    def positions(self) -> np.ndarray:
+        return np.array(self.odometry_xy, dtype=np.float64).reshape(-1, 2)
 
 
 @dataclass
@@ -165,6 +171,13 @@ class SlamPipeline:
                 }
             )
         )
+        # Proximity candidates come with the map's prediction, good to a metre or two: ICP from
+        # it alone, no search over headings and translations.
+        self.proximity_verifier = LoopVerifier(
+            cfg.backend.loop_verification.model_copy(
+                update={"heading_step_deg": 360.0, "correlative_search": False, "refine_top_k": 1}
+            )
+        )
         self.recognizer = recognizer
         if self.recognizer is None and cfg.loops.enabled:
             self.recognizer = load_recognizer(cfg.loops.checkpoint, cfg.loops.recognizer_config)
@@ -235,8 +248,9 @@ class SlamPipeline:
             nsweeps=cfg.key_frames.nsweeps,
             ref_channel=cfg.key_frames.ref_channel,
             min_distance_m=cfg.key_frames.min_distance_m,
-            point_mask=self._dpr_mask(),
+            point_mask=self._dpr_mask() if cfg.key_frames.dynamic_points == "dpr" else None,
         )
+        use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
         span = None
         t_data = time.perf_counter()
         for frame in self.reader.iter_frames(info, filters=self._frame_filter):
@@ -248,7 +262,8 @@ class SlamPipeline:
             self.timings.frames += 1
             span = (frame.timestamp_us if span is None else span[0], frame.timestamp_us)
             twist = res.doppler.twist if res.doppler.valid else np.zeros(3)
-            buffer.add_frame(frame, res.world_from_ego, twist)
+            masks = res.doppler.static_masks if use_odometry_mask else None
+            buffer.add_frame(frame, res.world_from_ego, twist, masks)
             if frame.is_key_frame:
                 self._key_frame(session, frame, res, buffer)
             if bar is not None:
@@ -286,6 +301,8 @@ class SlamPipeline:
                 kf.relative = invert(prev.odometry_pose) @ kf.odometry_pose
                 kf.relative_cov = np.diag(np.square(_BROKEN_CHAIN_SIGMAS))
         session.key_frames.append(kf)
+        session.odometry_xy.append(kf.odometry_pose[:2, 3].copy())
+        session.timestamps_us.append(kf.timestamp_us)
         self._kf_by_key[kf.key] = kf
         self.timings.key_frames += 1
         t1 = time.perf_counter()
@@ -326,6 +343,7 @@ class SlamPipeline:
         t1 = time.perf_counter()
         self.timings.place_recognition_s += t1 - t0
         budget = None if session.inserted else cfg.unlinked_candidates_per_key_frame
+        closed = False
         for cand in candidates:
             gate = cfg.max_descriptor_distance
             if gate is not None and cand.descriptor_distance > gate:
@@ -334,8 +352,39 @@ class SlamPipeline:
                 if budget == 0:
                     break
                 budget -= 1
-            self._verify(session, kf, self._kf_by_key[cand.key], cand.descriptor_distance)
+            closed |= self._verify(session, kf, self._kf_by_key[cand.key], cand.descriptor_distance)
+        if not closed:
+            for other in self._proximity_candidates(session, kf):
+                self._verify(session, kf, other, float("nan"), self.proximity_verifier)
         self.timings.verification_s += time.perf_counter() - t1
+
+    def _proximity_candidates(self, session: _Session, kf: KeyFrame) -> list[KeyFrame]:
+        """Key frames of the query's group near its predicted position, nearest first, at most
+        one per session (the query's own recent past excluded)."""
+        cfg = self.config.loops
+        if cfg.proximity_radius_m is None:
+            return []
+        group = self.groups[session.group]
+        # Candidates and query are placed the same way (group link @ odometry) so that a common
+        # error of the link cancels; the verification's guess then uses the graph's estimate.
+        query_xy = (group.from_session[session.name] @ kf.odometry_pose)[:2, 3]
+        recent_us = cfg.exclude_recent_s * 1e6
+        found: list[tuple[float, KeyFrame]] = []
+        for name, group_from_session in group.from_session.items():
+            other = self.sessions[name]
+            xy = other.positions()
+            if other is session:
+                n_old = bisect.bisect_left(other.timestamps_us, kf.timestamp_us - recent_us)
+                xy = xy[:n_old]
+            if not len(xy):
+                continue
+            xy = xy @ group_from_session[:2, :2].T + group_from_session[:2, 3]
+            d = np.hypot(*(xy - query_xy).T)
+            i = int(np.argmin(d))
+            if d[i] <= cfg.proximity_radius_m:
+                found.append((float(d[i]), other.key_frames[i]))
+        found.sort(key=lambda t: t[0])
+        return [k for _, k in found[: cfg.proximity_candidates]]
 
     def _describe(self, session: _Session, kf: KeyFrame, cloud) -> tuple[np.ndarray, np.ndarray]:
         """The key frame's AutoPlace descriptor over (t-2, t-1, t); the recognizer encodes each
@@ -393,9 +442,13 @@ class SlamPipeline:
             return invert(self._pose_in_group(cand)) @ self._pose_in_group(query)
         return None
 
-    def _verify(self, session: _Session, query: KeyFrame, cand: KeyFrame, distance: float) -> None:
+    def _verify(
+        self, session: _Session, query: KeyFrame, cand: KeyFrame, distance: float, verifier=None
+    ) -> bool:
+        """Verify one candidate; True when it was accepted (into the graph, a group or a vote)."""
         guess = self._guess(query, cand)
-        verifier = self.verifier if guess is None else self.guided_verifier
+        if verifier is None:
+            verifier = self.verifier if guess is None else self.guided_verifier
         record, ver = verifier.verify_candidate(
             query.key,
             cand.key,
@@ -419,7 +472,7 @@ class SlamPipeline:
                 )
         if not record.accepted:
             self.loops.append(record)
-            return
+            return False
         loop = _PendingLoop(record, ver.information)
         if session.group == cand_session.group:
             if session.inserted:
@@ -430,6 +483,7 @@ class SlamPipeline:
             self._votes.append(loop)
             self._try_merge(session.group, cand_session.group)
         session.last_loop_kf = query.key.index
+        return True
 
     def _add_loop(self, record: LoopCandidate, information: np.ndarray) -> None:
         self.graph.add_loop(

@@ -253,3 +253,54 @@ def test_a_session_after_a_merge_keeps_its_own_group(sim_dataroot):
     groups = [pipeline.sessions[n].group for n in names]
     assert groups[0] == groups[1] != groups[2]
     assert sorted(len(c.sessions) for c in res.components) == [1, 2]
+
+
+def test_linked_sessions_close_loops_by_proximity(reader):
+    # Once the second session is linked (two scripted votes), its later key frames are registered
+    # against the nearest key frame of the map, guided by the prediction, without the recognizer.
+    asked = []
+
+    def accept(pipeline, q, c):
+        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 1) else None
+
+    def prox(pipeline, q, c):
+        asked.append((q, c))
+        return _true_pose(pipeline, q, c)
+
+    scenes = [s.name for s in reader.scenes()]
+    cfg = SlamConfig()
+    cfg.loops.min_key_frames_between_loops = 0
+    cfg.loops.proximity_radius_m = 30.0
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, prox)
+    res = pipeline.run(scenes)
+    first, second = scenes
+    assert asked, "linked key frames near the map must be verified by proximity"
+    kfs = pipeline._kf_by_key
+    for q, c in asked:
+        assert (q.session, c.session) == (second, first) and q.index >= 1
+        gap = np.linalg.norm(kfs[q].gt_pose[:2, 3] - kfs[c].gt_pose[:2, 3])
+        assert gap < 30.0 + 1.0  # placed where it is (odometry error < 1 m on tiny)
+        nearest = min(
+            np.linalg.norm(kfs[q].gt_pose[:2, 3] - k.gt_pose[:2, 3])
+            for k in pipeline.key_frames(first)
+        )
+        assert gap < nearest + 1.0, "the nearest map key frame is the one verified"
+    proximity = [lp for lp in res.accepted_loops if np.isnan(lp.descriptor_distance)]
+    assert len(proximity) == len(asked)
+    assert len(res.components) == 1
+
+
+def test_proximity_search_can_be_switched_off(reader):
+    def accept(pipeline, q, c):
+        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 1) else None
+
+    cfg = SlamConfig()
+    cfg.loops.min_key_frames_between_loops = 0
+    cfg.loops.proximity_radius_m = None
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, lambda *a: pytest.fail("called"))
+    res = pipeline.run([s.name for s in reader.scenes()])
+    assert len(res.accepted_loops) == 2
