@@ -53,6 +53,12 @@ class LoopDetectionConfig(StrictModel):
     proximity_radius_m: float | None = Field(10.0, gt=0.0)
     #: Proximity candidates verified per key frame (nearest first, one per other session).
     proximity_candidates: int = Field(1, ge=1, le=10)
+    #: Proximity verification starts from the map's prediction, so it can afford to look only at
+    #: points within this range (4x cheaper than whole 200 m radar maps) and a lower tight-fitness
+    #: threshold than the global search (on the synthetic city: 144 of 150 proximity candidates
+    #: accepted, none wrong, vs 122 with the global thresholds on whole maps).
+    proximity_max_range_m: float | None = Field(60.0, gt=0.0)
+    proximity_min_tight_fitness: float = Field(0.08, ge=0.0, le=1.0)
     #: Between two sessions already in the map, a verified loop that moves the query farther than
     #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
     map_consistency_m: float = Field(3.0, gt=0.0)

@@ -144,6 +144,16 @@ def _se2_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     )
 
 
+def _se2_mean(poses: list[np.ndarray]) -> np.ndarray:
+    """Mean of nearby planar poses: mean translation, circular mean of the yaw."""
+    from radarslam.geometry import se2_to_matrix
+
+    t = np.mean([p[:2, 3] for p in poses], axis=0)
+    yaws = np.array([np.arctan2(p[1, 0], p[0, 0]) for p in poses])
+    yaw = float(np.arctan2(np.sin(yaws).mean(), np.cos(yaws).mean()))
+    return se2_to_matrix(float(t[0]), float(t[1]), yaw)
+
+
 class SlamPipeline:
     """Single- and multi-session radar SLAM over scenes of a :class:`NuScenesRadar` reader."""
 
@@ -175,7 +185,13 @@ class SlamPipeline:
         # it alone, no search over headings and translations.
         self.proximity_verifier = LoopVerifier(
             cfg.backend.loop_verification.model_copy(
-                update={"heading_step_deg": 360.0, "correlative_search": False, "refine_top_k": 1}
+                update={
+                    "heading_step_deg": 360.0,
+                    "correlative_search": False,
+                    "refine_top_k": 1,
+                    "max_range_m": cfg.loops.proximity_max_range_m,
+                    "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
+                }
             )
         )
         self.recognizer = recognizer
@@ -191,6 +207,8 @@ class SlamPipeline:
         self._duration_s = 0.0
         #: Information matrix of every loop factor added, by (candidate, query).
         self.loop_information: dict[tuple[NodeKey, NodeKey], np.ndarray] = {}
+        #: Key frames that are the query of an accepted loop (a vote, in a group or in the map).
+        self._closed: set[NodeKey] = set()
 
     # --- the run ---------------------------------------------------------------------------------
 
@@ -358,9 +376,12 @@ class SlamPipeline:
                 self._verify(session, kf, other, float("nan"), self.proximity_verifier)
         self.timings.verification_s += time.perf_counter() - t1
 
-    def _proximity_candidates(self, session: _Session, kf: KeyFrame) -> list[KeyFrame]:
-        """Key frames of the query's group near its predicted position, nearest first, at most
-        one per session (the query's own recent past excluded)."""
+    def _proximity_candidates(
+        self, session: _Session, kf: KeyFrame, among: set[str] | None = None
+    ) -> list[KeyFrame]:
+        """Key frames of the query's group (of its sessions ``among``, if given) near the query's
+        predicted position, nearest first, at most one per session (the query's own recent past
+        excluded)."""
         cfg = self.config.loops
         if cfg.proximity_radius_m is None:
             return []
@@ -371,6 +392,8 @@ class SlamPipeline:
         recent_us = cfg.exclude_recent_s * 1e6
         found: list[tuple[float, KeyFrame]] = []
         for name, group_from_session in group.from_session.items():
+            if among is not None and name not in among:
+                continue
             other = self.sessions[name]
             xy = other.positions()
             if other is session:
@@ -447,6 +470,7 @@ class SlamPipeline:
     ) -> bool:
         """Verify one candidate; True when it was accepted (into the graph, a group or a vote)."""
         guess = self._guess(query, cand)
+        source = "recognition" if verifier is None else "proximity"
         if verifier is None:
             verifier = self.verifier if guess is None else self.guided_verifier
         record, ver = verifier.verify_candidate(
@@ -459,6 +483,7 @@ class SlamPipeline:
             self._local_map(cand, past_only=False),
             guess,
         )
+        record = replace(record, source=source)
         cand_session = self.sessions[cand.key.session]
         if record.accepted and guess is not None and cand_session is not session:
             # The guess came from the map (or the group): a pose far from it is a look-alike.
@@ -474,6 +499,7 @@ class SlamPipeline:
             self.loops.append(record)
             return False
         loop = _PendingLoop(record, ver.information)
+        self._closed.add(query.key)  # before a merge: its catch-up need not search this one
         if session.group == cand_session.group:
             if session.inserted:
                 self._add_loop(record, ver.information)
@@ -527,7 +553,7 @@ class SlamPipeline:
                 best = agree
         if len(best) < cfg.link_min_consistent_loops:
             return
-        b_from_a = placements[best[0]]
+        b_from_a = _se2_mean([placements[j] for j in best])  # each vote errs independently
         agreeing = {id(votes[j]) for j in best}
         for v in votes:
             self._votes.remove(v)
@@ -547,6 +573,7 @@ class SlamPipeline:
             gb.from_session[name] = b_from_a @ group_from_session
             self.sessions[name].group = gb.index
         loops = ga.loops + links
+        stayed = [n for n in gb.from_session if n not in ga.from_session]
         if gb.in_map:
             for name in moved:
                 self._insert_session(self.sessions[name], gb.from_session[name], "unknown")
@@ -554,6 +581,25 @@ class SlamPipeline:
                 self._add_loop(p.record, p.information)
         else:
             gb.loops.extend(loops)
+        self._catch_up(moved, stayed)
+
+    def _catch_up(self, side_a: list[str], side_b: list[str]) -> None:
+        """Proximity search for the key frames processed before their sessions were linked: each
+        key frame not yet closed looks for its revisit among the other side's earlier sessions
+        (the query of a loop is always the later key frame)."""
+        if self.config.loops.proximity_radius_m is None:
+            return
+        for mine, theirs in ((side_a, side_b), (side_b, side_a)):
+            for name in mine:
+                session = self.sessions[name]
+                earlier = {n for n in theirs if self.sessions[n].index < session.index}
+                if not earlier:
+                    continue
+                for kf in list(session.key_frames):
+                    if kf.key in self._closed:
+                        continue
+                    for other in self._proximity_candidates(session, kf, among=earlier):
+                        self._verify(session, kf, other, float("nan"), self.proximity_verifier)
 
     def _insert_group(self, group: _Group, anchor: str) -> None:
         """Put every session of a group into the graph (the first with ``anchor``) and its

@@ -41,6 +41,8 @@ class LoopVerification:
     information: np.ndarray  # 3x3, Pose2 tangent order (x, y, theta)
     initial_heading_deg: float = float("nan")  # the heading hypothesis that won
     runtime_ms: float = 0.0
+    #: fraction of query points with a correspondence within the tight distance (0.3 m)
+    tight_fitness: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,6 +60,9 @@ class LoopCandidate:
     fitness: float = float("nan")
     inlier_rmse_m: float = float("nan")
     overlap: float = float("nan")
+    tight_fitness: float = float("nan")
+    #: what proposed the candidate: "recognition" (AutoPlace) or "proximity" (the map)
+    source: str = "recognition"
 
     @staticmethod
     def from_verification(
@@ -80,6 +85,7 @@ class LoopCandidate:
             fitness=verification.fitness,
             inlier_rmse_m=verification.inlier_rmse_m,
             overlap=verification.overlap,
+            tight_fitness=verification.tight_fitness,
         )
 
 
@@ -99,7 +105,11 @@ LOOPS_CSV_COLUMNS: tuple[str, ...] = (
     "x_m",
     "y_m",
     "yaw_rad",
+    "tight_fitness",
+    "source",
 )
+#: Files written before ``tight_fitness`` and ``source`` existed are still read.
+_LOOPS_CSV_COLUMNS_V1 = LOOPS_CSV_COLUMNS[:-2]
 
 
 def write_loops_csv(path: str | Path, loops: list[LoopCandidate]) -> None:
@@ -127,6 +137,8 @@ def write_loops_csv(path: str | Path, loops: list[LoopCandidate]) -> None:
                 repr(float(x)),
                 repr(float(y)),
                 repr(float(yaw)),
+                repr(float(lc.tight_fitness)),
+                lc.source,
             ]
         )
     write_text_atomic(path, buf.getvalue())
@@ -139,17 +151,16 @@ def read_loops_csv(path: str | Path) -> list[LoopCandidate]:
     with path.open(newline="") as fh:
         reader = csv.reader(fh)
         header = next(reader, None)
-        if header is None or tuple(header) != LOOPS_CSV_COLUMNS:
+        columns = tuple(header) if header is not None else ()
+        if columns not in (LOOPS_CSV_COLUMNS, _LOOPS_CSV_COLUMNS_V1):
             raise DataError(f"{path}:1: header is not {','.join(LOOPS_CSV_COLUMNS)}")
         out = []
         for lineno, row in enumerate(reader, start=2):
             if not row:
                 continue
-            if len(row) != len(LOOPS_CSV_COLUMNS):
-                raise DataError(
-                    f"{path}:{lineno}: expected {len(LOOPS_CSV_COLUMNS)} columns, got {len(row)}"
-                )
-            r = dict(zip(LOOPS_CSV_COLUMNS, row, strict=True))
+            if len(row) != len(columns):
+                raise DataError(f"{path}:{lineno}: expected {len(columns)} columns, got {len(row)}")
+            r = dict(zip(columns, row, strict=True))
             try:
                 accepted = {"1": True, "0": False, "true": True, "false": False}[
                     r["accepted"].strip().lower()
@@ -167,6 +178,8 @@ def read_loops_csv(path: str | Path) -> list[LoopCandidate]:
                     fitness=float(r["fitness"]),
                     inlier_rmse_m=float(r["inlier_rmse_m"]),
                     overlap=float(r["overlap"]),
+                    tight_fitness=float(r.get("tight_fitness", "nan")),
+                    source=r.get("source", "recognition"),
                 )
             except (ValueError, KeyError):
                 raise DataError(f"{path}:{lineno}: malformed loop row {','.join(row)!r}") from None

@@ -112,3 +112,32 @@ def test_verify_candidate_logs_every_outcome():
     assert [r.accepted for r in v.log] == [True, False]
     assert rec.reason == "ok" and rec.candidate == NodeKey("a", 2)
     assert v.log[1].reason != "ok"
+
+
+def test_tight_fitness_rejects_a_blurred_match():
+    # The same place seen with 0.6 m noise aligns within 1 m (fitness passes) but hardly any
+    # point lands within 0.3 m: the tight test is what rejects such vague matches.
+    q_from_place = se2_to_matrix(3.0, 1.0, 0.3)
+    place = random_place(8, points_per_m=3)
+    cand = observe_place(place, np.eye(4), seed=1, dropout=0.3, noise_m=0.15)
+    sharp = observe_place(place, q_from_place, seed=2, dropout=0.3, noise_m=0.15)
+    vague = observe_place(place, q_from_place, seed=2, dropout=0.3, noise_m=0.6)
+    guess = invert(q_from_place)
+    loose = LoopVerifier(LoopVerifierConfig(min_tight_fitness=0.0, max_inlier_rmse_m=1.0))
+    strict = LoopVerifier(LoopVerifierConfig(min_tight_fitness=0.3, max_inlier_rmse_m=1.0))
+    assert strict.verify(sharp, cand, guess).accepted
+    v = strict.verify(vague, cand, guess)
+    assert not v.accepted and v.reason.startswith("tight_fitness")
+    assert loose.verify(vague, cand, guess).accepted
+    assert v.tight_fitness < strict.verify(sharp, cand, guess).tight_fitness
+
+
+def test_max_range_crops_far_points_before_registration():
+    q_from_place = se2_to_matrix(2.0, -1.0, 0.1)
+    query, cand, true = _revisit(9, q_from_place)
+    far = np.array([[150.0, 0.0], [0.0, -180.0]])
+    cropped = LoopVerifier(LoopVerifierConfig(max_range_m=60.0, correlative_search=False))
+    res = cropped.verify(np.vstack([query, far]), np.vstack([cand, far * 1.1]), true)
+    assert res.accepted and _pose_error(res.candidate_from_query, true)[0] < 0.15
+    # every point beyond the range gone: too few left when only far points remain
+    assert "too few points" in cropped.verify(far.repeat(50, 0), cand, true).reason

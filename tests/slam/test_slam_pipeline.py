@@ -304,3 +304,31 @@ def test_proximity_search_can_be_switched_off(reader):
     pipeline.proximity_verifier = _ScriptedVerifier(pipeline, lambda *a: pytest.fail("called"))
     res = pipeline.run([s.name for s in reader.scenes()])
     assert len(res.accepted_loops) == 2
+
+
+def test_key_frames_before_the_link_are_caught_up_by_proximity(reader):
+    # The link votes come at key frames 2 and 3 of the second session; key frames 0 and 1, which
+    # revisit the first session's end too, must be verified by proximity once the link exists.
+    asked = []
+
+    def accept(pipeline, q, c):
+        late_vote = _is_link_pair(pipeline, q, c, 3) and q.index >= 2
+        return _true_pose(pipeline, q, c) if late_vote else None
+
+    def prox(pipeline, q, c):
+        asked.append((q, c))
+        return _true_pose(pipeline, q, c)
+
+    scenes = [s.name for s in reader.scenes()]
+    cfg = SlamConfig()
+    cfg.loops.min_key_frames_between_loops = 0
+    cfg.loops.proximity_radius_m = 30.0
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, prox)
+    res = pipeline.run(scenes)
+    assert len(res.components) == 1
+    first_asks = [q.index for q, _ in asked if q.index < 2]
+    assert first_asks == [0, 1], "each earlier key frame is caught up once, in order"
+    caught = [lp for lp in res.accepted_loops if lp.source == "proximity" and lp.query.index < 2]
+    assert len(caught) == 2
