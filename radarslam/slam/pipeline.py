@@ -89,11 +89,18 @@ class _Session:
     inserted: bool = False
     world_from_session: np.ndarray | None = None  # where the chain was put in the map
     last_loop_kf: int = -(10**9)
-    odometry_xy: list[np.ndarray] = field(default_factory=list)  # key-frame positions
     timestamps_us: list[int] = field(default_factory=list)  # of the key frames, increasing
+    _xy: np.ndarray = field(default_factory=lambda: np.zeros((64, 2)))  # grows by doubling
+
+    def add_position(self, xy: np.ndarray) -> None:
+        n = len(self.timestamps_us) - 1  # the key frame's index (its timestamp is in already)
+        if n >= len(self._xy):
+            self._xy = np.concatenate([self._xy, np.zeros_like(self._xy)])
+        self._xy[n] = xy
 
     def positions(self) -> np.ndarray:
-        return np.array(self.odometry_xy, dtype=np.float64).reshape(-1, 2)
+        """(N, 2) odometry positions of the key frames so far (a view, no copy)."""
+        return self._xy[: len(self.timestamps_us)]
 
 
 @dataclass
@@ -319,8 +326,8 @@ class SlamPipeline:
                 kf.relative = invert(prev.odometry_pose) @ kf.odometry_pose
                 kf.relative_cov = np.diag(np.square(_BROKEN_CHAIN_SIGMAS))
         session.key_frames.append(kf)
-        session.odometry_xy.append(kf.odometry_pose[:2, 3].copy())
         session.timestamps_us.append(kf.timestamp_us)
+        session.add_position(kf.odometry_pose[:2, 3])
         self._kf_by_key[kf.key] = kf
         self.timings.key_frames += 1
         t1 = time.perf_counter()
