@@ -428,12 +428,13 @@ class _LikelihoodGrid:
         full = tuple(
             fft.next_fast_len(int(n), real=True) for n in np.array(self.grid.shape) + qshape
         )
-        qocc = np.zeros((len(rasters), *full))
+        qocc = np.zeros((len(rasters), *full), dtype=np.float32)  # float32: 2x faster FFTs
         for k, (qi, _) in enumerate(rasters):
             qocc[k, qi[:, 0], qi[:, 1]] = 1.0
         # score(s) = sum_p qocc(p) grid(p + base + s): a cross-correlation, circular over `full`,
         # which is large enough that no shift in the window wraps around.
-        spec = fft.rfft2(self.grid, full)[None] * np.conj(fft.rfft2(qocc, axes=(-2, -1)))
+        grid = self.grid.astype(np.float32)
+        spec = fft.rfft2(grid, full)[None] * np.conj(fft.rfft2(qocc, axes=(-2, -1)))
         corr = fft.irfft2(spec, full, axes=(-2, -1))
         sx = np.arange(-r, r + 1)
         out = []
