@@ -56,7 +56,7 @@ class LoopVerifierConfig(StrictModel):
     correlative_search: bool = True
     search_radius_m: float = Field(15.0, ge=0)
     grid_cell_m: float = Field(2.0, gt=0)
-    refine_top_k: int = Field(1, ge=1)
+    refine_top_k: int = Field(2, ge=1)
     coarse_max_correspondence_m: float = Field(3.0, gt=0)
     max_correspondence_m: float = Field(1.0, gt=0)
     max_iterations: int = Field(30, ge=1)
