@@ -2,6 +2,9 @@
 
     python bench/slam.py                       # generates data/bench-city (8 logs, 2 routes)
     python bench/slam.py --dataroot D --version v1.0-trainval
+    # long sessions (4 logs on one route, 2 scenes of 90 s each): where odometry has drift to fix
+    python bench/slam.py --dataroot data/bench-city-long --logs 4 --routes 1 \
+        --scenes-per-log 2 --scene-duration-s 90
 
 What it measures, in one process on the same data:
 - odometry alone: every session started on its own ground-truth pose (generous: SLAM gets the
@@ -100,6 +103,10 @@ def main() -> None:
     ap.add_argument("--version", default="v1.0-trainval")
     ap.add_argument("--logs", type=int, default=8, help="logs of the city preset to generate")
     ap.add_argument("--routes", type=int, default=2, help="shared routes among those logs")
+    ap.add_argument("--scenes-per-log", type=int, default=None, help="default: the preset's (4)")
+    ap.add_argument(
+        "--scene-duration-s", type=float, default=None, help="default: the preset's (20 s)"
+    )
     ap.add_argument("--max-scenes", type=int, default=None)
     ap.add_argument("--out", type=Path, default=Path("runs/bench-slam"))
     ap.add_argument("--jobs", type=int, default=2)
@@ -116,12 +123,12 @@ def main() -> None:
 
     if not is_complete(args.dataroot, args.version):
         print(f"generating city subset ({args.logs} logs, {args.routes} routes) in {args.dataroot}")
-        simulate(
-            "city",
-            args.dataroot,
-            jobs=args.jobs,
-            overrides=[f"schedule.n_logs={args.logs}", f"schedule.n_routes={args.routes}"],
-        )
+        overrides = [f"schedule.n_logs={args.logs}", f"schedule.n_routes={args.routes}"]
+        if args.scenes_per_log is not None:
+            overrides.append(f"schedule.scenes_per_log={args.scenes_per_log}")
+        if args.scene_duration_s is not None:
+            overrides.append(f"schedule.scene_duration_s={args.scene_duration_s}")
+        simulate("city", args.dataroot, jobs=args.jobs, overrides=overrides)
     reader = NuScenesRadar(args.dataroot, args.version)
     scenes = [s.name for s in reader.scenes_for_location(reader.locations()[0])]
     scenes = scenes[: args.max_scenes] if args.max_scenes else scenes

@@ -16,7 +16,12 @@
    d. **verification** of each candidate by registering the two key frames' local maps
       (:class:`~radarslam.slam.loop_closure.LoopVerifier`); every candidate, accepted or not, is
       logged with the reason;
-   e. accepted loops become robust factors; iSAM2 receives only the new factors and values.
+   e. **proximity search** when recognition closed nothing: once the key frame's session is
+      linked to others (or revisits its own past), the nearest key frame of its group within
+      ``proximity_radius_m`` of the predicted pose is registered from that prediction (ICP only).
+      Recognition links sessions; proximity then closes a loop at nearly every revisiting key
+      frame, which is what pulls the whole session onto the map;
+   f. accepted loops become robust factors; iSAM2 receives only the new factors and values.
 3. A final batch Levenberg-Marquardt, the static map, and the results folder.
 
 Multi-session. Each scene is its own odometry chain and starts as its own *group*. Verified loops
@@ -25,7 +30,10 @@ votes agree, the groups merge (the other votes are rejected as false loops). The
 group is the map: a group that merges into it enters the graph with its poses moved there (iSAM2
 never sees a chain initialised kilometres away), together with the loops found inside it. Groups
 that never reach the map are added at the end on their own weak anchor and reported as separate
-components, not forced into the map.
+components, not forced into the map. When two groups merge, the key frames processed before the
+link (which had no prediction then) are caught up by the proximity search against the other side.
+The merged placement is the mean of the agreeing votes: each vote errs on its own, and proximity
+ICP inherits the placement's error along a street, where the geometry barely constrains it.
 """
 
 from __future__ import annotations
