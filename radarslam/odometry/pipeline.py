@@ -180,6 +180,7 @@ class RadarOdometry:
             point_sigma_m=r.point_sigma_m,
             line_neighbors=r.line_neighbors,
             mirror_every=r.mirror_every,
+            refine_iterations=r.refine_iterations,
         )
 
     # --- points -------------------------------------------------------------------------------

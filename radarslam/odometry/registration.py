@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from radarslam.odometry.lie import planar
+from radarslam.odometry.lie import exp_se2, planar
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,7 @@ class ScanToMapRegistration:
         point_sigma_m: float,
         line_neighbors: int,
         mirror_every: int,
+        refine_iterations: int = 0,
     ):
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
@@ -65,6 +66,7 @@ class ScanToMapRegistration:
         self.point_sigma_m = point_sigma_m
         self.line_neighbors = line_neighbors
         self.mirror_every = mirror_every
+        self.refine_iterations = refine_iterations
         self.map = VoxelHashMap(voxel_size_m, max_range_m, max_points_per_voxel)
         # One thread: deterministic, and the machines this runs on are shared.
         self.registration = Registration(max_num_iterations, convergence_criterion, 1)
@@ -110,6 +112,8 @@ class ScanToMapRegistration:
             kernel=sigma,
         )
         pose = planar(np.asarray(pose, dtype=np.float64))
+        if self.refine_iterations:
+            pose = self._refine(source, pose, 3.0 * sigma, sigma)
         cov, matched, rms = self._covariance(source, pose, 3.0 * sigma)
         return RegistrationResult(pose, cov, len(source), matched, rms, sigma)
 
@@ -120,6 +124,55 @@ class ScanToMapRegistration:
         if len(frame_points):
             self.map.update(frame_points, planar(world_from_ego))
             self._mirror_age += 1
+
+    # --- refinement ---------------------------------------------------------------------------
+
+    def _refine(self, source: np.ndarray, pose: np.ndarray, max_dist: float, sigma: float):
+        """Gauss-Newton on point-to-local-mean residuals, from kiss-icp's solution.
+
+        kiss-icp matches each point to the single nearest map point. Radar maps are clouds of
+        noisy returns around each reflector (up to 20 per voxel), so a slightly rotated scan still
+        finds a near neighbour inside every cloud and the point-to-point cost is almost flat in
+        yaw: the registration stays where the Doppler prediction put it. The mean of a point's
+        ``line_neighbors`` nearest map points (within the correspondence distance) averages that
+        noise out and restores the pull towards the reflector. Weights: Geman-McClure with
+        kiss-icp's kernel ``sigma``.
+        """
+        mirror = self._mirror_tree()
+        k = self.line_neighbors
+        if mirror is None or len(mirror[1]) < k or len(source) < 3:
+            return pose
+        tree, cloud = mirror
+        pb = source[:, :2]
+        px, py = -pb[:, 1], pb[:, 0]
+        s2 = sigma**2
+        for _ in range(self.refine_iterations):
+            rot, t = pose[:2, :2], pose[:2, 3]
+            pw = pb @ rot.T + t
+            # Bounded query: much cheaper than plain k-NN where the map is sparse.
+            dist, idx = tree.query(pw, k=k, distance_upper_bound=max_dist)
+            valid = dist < max_dist
+            cnt = valid.sum(axis=1)
+            ok = cnt > 0
+            if ok.sum() < 3:
+                return pose
+            valid, cnt = valid[ok], cnt[ok]
+            nb = cloud[np.where(valid, idx[ok], 0)]  # missing neighbours: index len(cloud)
+            mean = np.einsum("mk,mki->mi", valid, nb) / cnt[:, None]
+            r = pw[ok] - mean
+            rb = r @ rot  # body frame, R^T r
+            w = (s2 / (s2 + np.einsum("mi,mi->m", r, r))) ** 2
+            qx, qy = px[ok], py[ok]
+            # J = R [I, perp(p)]: J^T J = [[I, perp], [perp^T, |p|^2]], J^T r = [rb, perp . rb].
+            sw = w.sum()
+            hxt, hyt = w @ qx, w @ qy
+            hess = np.array([[sw, 0.0, hxt], [0.0, sw, hyt], [hxt, hyt, w @ (qx * qx + qy * qy)]])
+            grad = np.array([w @ rb[:, 0], w @ rb[:, 1], w @ (qx * rb[:, 0] + qy * rb[:, 1])])
+            delta = -np.linalg.solve(hess + np.eye(3) * 1e-9, grad)
+            pose = planar(pose @ exp_se2(delta))
+            if np.abs(delta).max() < 1e-4:  # 0.1 mm, 0.006 deg
+                break
+        return pose
 
     # --- covariance ---------------------------------------------------------------------------
 
