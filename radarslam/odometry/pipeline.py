@@ -12,8 +12,9 @@ Per frame (the five radars' sweeps nearest in time, :class:`~radarslam.types.Rad
    frames' twists) integrated on SE(2); its covariance is the twists' covariances propagated
    through the SE(2) exponential plus a random-walk process noise.
 4. **Registration**: kiss-icp's own registration aligns the points to kiss-icp's voxel-hash local
-   map, seeded with the predicted pose (not kiss-icp's constant-velocity guess). Its covariance is
-   the point-to-line Hessian at the solution (:mod:`.registration`).
+   map, seeded with the predicted pose (not kiss-icp's constant-velocity guess), then a
+   point-to-local-mean Gauss-Newton refinement finishes the alignment. Its covariance is the
+   point-to-line Hessian at the solution (:mod:`.registration`).
 5. **Fusion** (choice documented in docs/odometry.md): an error-state Kalman filter on SE(2).
    The Doppler motion is the filter's *input* (prediction), the registration is a *measurement of
    the pose in the map*. Treating scan-to-map ICP as a map-relative measurement rather than as a

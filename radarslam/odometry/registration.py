@@ -8,12 +8,16 @@ extrapolation (which, after many empty frames, de-orthogonalises the rotation un
 aborts the process: dependencies.md pitfall 4). Every pose handed to kiss-icp is an exact SE(2)
 pose built here, and its output is projected back onto SE(2).
 
+kiss-icp's few iterations are followed by a Gauss-Newton refinement on point-to-local-mean
+residuals (``refine_iterations``; why in :meth:`ScanToMapRegistration._refine`).
+
 kiss-icp reports no uncertainty, so the covariance of an alignment is computed here from the
 point-to-line Hessian at the solution (Censi-style ``sigma^2 H^-1``): each source point's nearest
 map points give a local line (PCA), the residual is the distance along its normal. A row of
 reflectors along one wall therefore leaves the motion along the wall unconstrained, which the
-fusion then takes from the Doppler prediction. The map mirror used for these correspondences is
-a KD-tree of kiss-icp's map rebuilt every ``mirror_every`` frames (cheap: a few thousand points).
+fusion then takes from the Doppler prediction. The map mirror used for the refinement and these
+correspondences is a KD-tree of kiss-icp's map (~20k points) rebuilt every ``mirror_every`` map
+updates.
 """
 
 from __future__ import annotations
