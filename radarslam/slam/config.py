@@ -81,3 +81,8 @@ class SlamConfig(StrictModel):
     #: nuScenes global frame; no other ground truth is used) or the identity. Later sessions
     #: always start unknown and are placed by loop closures.
     first_session_anchor: Literal["ground_truth", "identity"] = "ground_truth"
+    #: Run the odometry (reading, Doppler, kiss-icp, key-frame clouds) in a forked process while
+    #: this one does the key-frame work (recognition, registration, iSAM2): on two cores the two
+    #: overlap. Identical results, since odometry never depends on loops. Ignored where the
+    #: platform cannot fork. False: everything in the calling process.
+    pipelined: bool = True

@@ -69,6 +69,60 @@ class KeyFrame:
     relative_cov: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class _KeyFrameInput:
+    """What the key-frame side needs of a key frame's frame and odometry result."""
+
+    timestamp_us: int
+    sample_token: str
+    gt_pose: np.ndarray
+    odometry_pose: np.ndarray
+    motion: np.ndarray | None  # key-frame motion from the odometry (None: it restarted)
+    motion_cov: np.ndarray | None
+    ego_from_ref: np.ndarray
+
+
+def _key_frame_input(frame, res, buffer) -> _KeyFrameInput:
+    def copy(a):
+        return None if a is None else np.array(a, dtype=np.float64)
+
+    return _KeyFrameInput(
+        timestamp_us=int(frame.timestamp_us),
+        sample_token=frame.sample_token,
+        gt_pose=np.array(frame.world_from_ego, dtype=np.float64),
+        odometry_pose=np.array(res.world_from_ego, dtype=np.float64),
+        motion=copy(res.key_frame_motion),
+        motion_cov=copy(res.key_frame_covariance),
+        ego_from_ref=np.array(buffer.ego_from_ref(), dtype=np.float64),
+    )
+
+
+_TIMING_FIELDS = ("data_s", "odometry_s", "key_frame_s", "frames")
+
+
+def _can_fork() -> bool:
+    import multiprocessing as mp
+
+    return "fork" in mp.get_all_start_methods()
+
+
+def _odometry_process(pipeline, infos, messages) -> None:
+    """Body of the forked odometry process: stream messages, then its timings (or its error)."""
+    try:
+        for message in pipeline._odometry_messages(infos):
+            messages.put(message)
+        t = pipeline.timings
+        messages.put(("done", {name: getattr(t, name) for name in _TIMING_FIELDS}))
+    except BaseException as exc:  # handed to the parent, which raises it
+        try:
+            messages.put(("error", exc))
+        except Exception:  # an unpicklable error: say what it was
+            messages.put(("error", DataError(f"odometry process: {type(exc).__name__}: {exc}")))
+    finally:
+        messages.close()
+        messages.join_thread()
+
+
 @dataclass
 class _PendingLoop:
     """A verified loop not yet in the graph."""
@@ -236,10 +290,11 @@ class SlamPipeline:
             raise DataError(f"scene listed twice in {names}")
         bar = self._progress_bar(infos)
         try:
-            for info in infos:
-                span = self._run_session(info, bar)
-                if span is not None:
-                    self._duration_s += (span[1] - span[0]) * 1e-6
+            if self.config.pipelined and _can_fork():
+                self._consume_from_process(infos, bar)
+            else:
+                for message in self._odometry_messages(infos):
+                    self._handle(message, bar)
         finally:
             if bar is not None:
                 bar.close()
@@ -263,73 +318,142 @@ class SlamPipeline:
         self.timings.final_optimization_s += time.perf_counter() - t0
         return self._result()
 
-    def _run_session(self, info: SceneInfo, bar) -> tuple[int, int] | None:
-        cfg = self.config
+    # --- the odometry side: frames -> key-frame clouds -------------------------------------------
+
+    def _odometry_messages(self, infos: Sequence[SceneInfo]):
+        """Odometry over every frame of the scenes, as messages for :meth:`_handle`:
+        ``("session", name)``, ``("key_frame", name, _KeyFrameInput, cloud)``, ``("frames", n)``
+        and ``("span", first_us, last_us)``. Nothing here reads what the key-frame side writes
+        (odometry never depends on loops), which is what lets it run in its own process."""
         from radarslam.slam.keyframes import SweepBuffer
 
-        session = _Session(info.name, len(self.sessions))
-        self.sessions[info.name] = session
-        group = _Group(session.index, {info.name: np.eye(4)})  # unique: merges delete groups
+        cfg = self.config
+        use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
+        for n, info in enumerate(infos):
+            yield ("session", info.name)
+            # the first session may start on its ground truth; later ones start unknown
+            self.odometry.config.initial_pose = cfg.first_session_anchor if n == 0 else "identity"
+            self.odometry.reset()
+            buffer = SweepBuffer(
+                nsweeps=cfg.key_frames.nsweeps,
+                ref_channel=cfg.key_frames.ref_channel,
+                min_distance_m=cfg.key_frames.min_distance_m,
+                point_mask=self._dpr_mask() if not use_odometry_mask else None,
+            )
+            span = None
+            pending = 0  # frames not yet reported to the progress bar
+            t_data = time.perf_counter()
+            for frame in self.reader.iter_frames(info, filters=self._frame_filter):
+                t0 = time.perf_counter()
+                self.timings.data_s += t0 - t_data
+                res = self.odometry.process(frame)
+                t1 = time.perf_counter()
+                self.timings.odometry_s += t1 - t0
+                self.timings.frames += 1
+                span = (frame.timestamp_us if span is None else span[0], frame.timestamp_us)
+                twist = res.doppler.twist if res.doppler.valid else np.zeros(3)
+                masks = res.doppler.static_masks if use_odometry_mask else None
+                buffer.add_frame(frame, res.world_from_ego, twist, masks)
+                pending += 1
+                if frame.is_key_frame:
+                    t2 = time.perf_counter()
+                    cloud = buffer.accumulate(
+                        frame.timestamp_us, res.world_from_ego, frame.sample_token
+                    )
+                    self.timings.key_frame_s += time.perf_counter() - t2
+                    if cloud is not None:  # None before the reference radar has been seen
+                        yield ("frames", pending)
+                        pending = 0
+                        yield ("key_frame", info.name, _key_frame_input(frame, res, buffer), cloud)
+                t_data = time.perf_counter()
+            if pending:
+                yield ("frames", pending)
+            if span is not None:
+                yield ("span", span[0], span[1])
+
+    def _consume_from_process(self, infos: Sequence[SceneInfo], bar) -> None:
+        """Run :meth:`_odometry_messages` in a forked process and handle its messages here: on
+        two cores the odometry and the key-frame work (recognition, registration, iSAM2) overlap.
+        Identical results to the sequential run. A thread would not do: open3d's and kiss-icp's
+        bindings hold the GIL (measured: no gain)."""
+        import multiprocessing as mp
+        import queue as queue_mod
+
+        ctx = mp.get_context("fork")
+        messages = ctx.Queue(maxsize=64)
+        proc = ctx.Process(
+            target=_odometry_process, args=(self, infos, messages), name="slam-odometry"
+        )
+        proc.daemon = True
+        proc.start()
+        try:
+            while True:
+                try:
+                    message = messages.get(timeout=1.0)
+                except queue_mod.Empty:
+                    if not proc.is_alive():
+                        raise DataError(
+                            f"the odometry process ended without finishing "
+                            f"(exit code {proc.exitcode}; scenes {infos[0].name}..)"
+                        ) from None
+                    continue
+                if message[0] == "error":
+                    raise message[1]
+                if message[0] == "done":
+                    for name, value in message[1].items():
+                        setattr(self.timings, name, value)
+                    break
+                self._handle(message, bar)
+            proc.join()
+        finally:
+            if proc.is_alive():
+                proc.terminate()
+                proc.join()
+
+    def _handle(self, message: tuple, bar) -> None:
+        kind = message[0]
+        if kind == "session":
+            self._start_session(message[1])
+        elif kind == "key_frame":
+            self._key_frame(*message[1:])
+        elif kind == "frames":
+            if bar is not None:
+                bar.update(message[1])
+        elif kind == "span":
+            self._duration_s += (message[2] - message[1]) * 1e-6
+        else:  # a programming error, not a data problem
+            raise AssertionError(f"unknown message {kind!r}")
+
+    # --- the key-frame side -----------------------------------------------------------------------
+
+    def _start_session(self, name: str) -> None:
+        session = _Session(name, len(self.sessions))
+        self.sessions[name] = session
+        group = _Group(session.index, {name: np.eye(4)})  # unique: merges delete groups
         self.groups[group.index] = group
         session.group = group.index
-        first = session.index == 0
-        self.odometry.config.initial_pose = (
-            cfg.first_session_anchor if first else "identity"  # later sessions: unknown start
-        )
-        self.odometry.reset()
-        buffer = SweepBuffer(
-            nsweeps=cfg.key_frames.nsweeps,
-            ref_channel=cfg.key_frames.ref_channel,
-            min_distance_m=cfg.key_frames.min_distance_m,
-            point_mask=self._dpr_mask() if cfg.key_frames.dynamic_points == "dpr" else None,
-        )
-        use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
-        span = None
-        t_data = time.perf_counter()
-        for frame in self.reader.iter_frames(info, filters=self._frame_filter):
-            t0 = time.perf_counter()
-            self.timings.data_s += t0 - t_data
-            res = self.odometry.process(frame)
-            t1 = time.perf_counter()
-            self.timings.odometry_s += t1 - t0
-            self.timings.frames += 1
-            span = (frame.timestamp_us if span is None else span[0], frame.timestamp_us)
-            twist = res.doppler.twist if res.doppler.valid else np.zeros(3)
-            masks = res.doppler.static_masks if use_odometry_mask else None
-            buffer.add_frame(frame, res.world_from_ego, twist, masks)
-            if frame.is_key_frame:
-                self._key_frame(session, frame, res, buffer)
-            if bar is not None:
-                bar.update(1)
-            t_data = time.perf_counter()
-        return span
 
-    # --- one key frame --------------------------------------------------------------------------
-
-    def _key_frame(self, session: _Session, frame, res, buffer) -> None:
-        t0 = time.perf_counter()
-        cloud = buffer.accumulate(frame.timestamp_us, res.world_from_ego, frame.sample_token)
-        if cloud is None:  # the reference radar has not been seen yet in this session
-            return
-        ego_from_ref = buffer.ego_from_ref()
+    def _key_frame(self, session_name: str, inp: _KeyFrameInput, cloud) -> None:
+        session = self.sessions[session_name]
+        ego_from_ref = inp.ego_from_ref
         xy_ref = np.column_stack([cloud.points["x"], cloud.points["y"]])
         xy_ego = xy_ref @ ego_from_ref[:2, :2].T + ego_from_ref[:2, 3]
         index = len(session.key_frames)
         prev = session.key_frames[-1] if session.key_frames else None
         kf = KeyFrame(
             key=NodeKey(session.name, index),
-            timestamp_us=int(frame.timestamp_us),
-            sample_token=frame.sample_token,
-            odometry_pose=np.array(res.world_from_ego, dtype=np.float64),
-            gt_pose=np.array(frame.world_from_ego, dtype=np.float64),
+            timestamp_us=inp.timestamp_us,
+            sample_token=inp.sample_token,
+            odometry_pose=inp.odometry_pose,
+            gt_pose=inp.gt_pose,
             cloud_xy_ego=xy_ego,
             cloud_points=cloud.points,
             ego_from_ref=ego_from_ref,
         )
         if prev is not None:
-            if res.key_frame_motion is not None:
-                kf.relative = np.asarray(res.key_frame_motion, dtype=np.float64)
-                kf.relative_cov = np.asarray(res.key_frame_covariance, dtype=np.float64)
+            if inp.motion is not None:
+                kf.relative = inp.motion
+                kf.relative_cov = inp.motion_cov
             else:  # the odometry restarted (gap in the data): a weak link keeps the chain whole
                 kf.relative = invert(prev.odometry_pose) @ kf.odometry_pose
                 kf.relative_cov = np.diag(np.square(_BROKEN_CHAIN_SIGMAS))
@@ -338,8 +462,6 @@ class SlamPipeline:
         session.add_position(kf.odometry_pose[:2, 3])
         self._kf_by_key[kf.key] = kf
         self.timings.key_frames += 1
-        t1 = time.perf_counter()
-        self.timings.key_frame_s += t1 - t0
 
         if session.inserted:
             self._add_node(session, kf)

@@ -332,3 +332,61 @@ def test_key_frames_before_the_link_are_caught_up_by_proximity(reader):
     assert first_asks == [0, 1], "each earlier key frame is caught up once, in order"
     caught = [lp for lp in res.accepted_loops if lp.source == "proximity" and lp.query.index < 2]
     assert len(caught) == 2
+
+
+def _poses_and_loops(res):
+    poses = np.concatenate([s.slam_poses for s in res.sessions])
+    loops = [(lp.query, lp.candidate, lp.accepted, lp.reason) for lp in res.loops]
+    return poses, loops
+
+
+def test_pipelined_run_gives_the_same_result_as_sequential(reader, scenes, recognizer):
+    import torch
+
+    out = {}
+    for pipelined in (False, True):
+        torch.manual_seed(0)  # the same untrained model both times
+        cfg = SlamConfig(pipelined=pipelined)
+        cfg.loops.exclude_recent_s = 3.0
+        cfg.loops.max_descriptor_distance = None
+        res = SlamPipeline(reader, cfg, recognizer=recognizer(), progress=False).run(scenes)
+        out[pipelined] = (*_poses_and_loops(res), res.timings.frames, res.duration_s)
+    np.testing.assert_array_equal(out[True][0], out[False][0])
+    assert out[True][1] == out[False][1] and out[True][1]
+    assert out[True][2:] == out[False][2:] and out[True][2] > 0  # timings came back
+
+
+class _ReaderThatFails:
+    """Delegates to a reader, but its frame stream breaks after a few frames."""
+
+    def __init__(self, reader, fail):
+        self._reader, self._fail = reader, fail
+
+    def __getattr__(self, name):
+        return getattr(self._reader, name)
+
+    def iter_frames(self, *args, **kwargs):
+        for n, frame in enumerate(self._reader.iter_frames(*args, **kwargs)):
+            if n == 20:
+                self._fail()
+            yield frame
+
+
+def test_an_error_in_the_odometry_process_reaches_the_caller(reader, scenes):
+    def fail():
+        raise DataError("sweep.pcd: truncated")
+
+    cfg = SlamConfig(pipelined=True)
+    cfg.loops.enabled = False
+    with pytest.raises(DataError, match="truncated"):
+        SlamPipeline(_ReaderThatFails(reader, fail), cfg, progress=False).run(scenes)
+
+
+def test_a_dead_odometry_process_is_a_clear_error(reader, scenes):
+    import os
+
+    cfg = SlamConfig(pipelined=True)  # e.g. kiss-icp calling abort(): only the child dies
+    cfg.loops.enabled = False
+    broken = _ReaderThatFails(reader, lambda: os._exit(3))
+    with pytest.raises(DataError, match=r"odometry process ended .*exit code 3"):
+        SlamPipeline(broken, cfg, progress=False).run(scenes)
