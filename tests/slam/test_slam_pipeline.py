@@ -343,6 +343,7 @@ def _poses_and_loops(res):
 def test_pipelined_run_gives_the_same_result_as_sequential(reader, scenes, recognizer):
     import torch
 
+    threads = torch.get_num_threads()
     out = {}
     for pipelined in (False, True):
         torch.manual_seed(0)  # the same untrained model both times
@@ -353,6 +354,7 @@ def test_pipelined_run_gives_the_same_result_as_sequential(reader, scenes, recog
         out[pipelined] = (*_poses_and_loops(res), res.timings.frames, res.duration_s)
     np.testing.assert_array_equal(out[True][0], out[False][0])
     assert out[True][1] == out[False][1] and out[True][1]
+    assert torch.get_num_threads() == threads, "the run gives torch its threads back"
     assert out[True][2:] == out[False][2:] and out[True][2] > 0  # timings came back
 
 
