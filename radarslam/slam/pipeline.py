@@ -282,6 +282,7 @@ class SlamPipeline:
                     "refine_top_k": 1,
                     "max_range_m": cfg.loops.proximity_max_range_m,
                     "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
+                    "icp_relative_tolerance": cfg.loops.proximity_icp_relative_tolerance,
                 }
             )
         )
