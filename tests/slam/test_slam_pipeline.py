@@ -392,3 +392,27 @@ def test_a_dead_odometry_process_is_a_clear_error(reader, scenes):
     broken = _ReaderThatFails(reader, lambda: os._exit(3))
     with pytest.raises(DataError, match=r"odometry process ended .*exit code 3"):
         SlamPipeline(broken, cfg, progress=False).run(scenes)
+
+
+def test_proximity_search_within_one_session_skips_its_recent_past(reader, scenes):
+    # A session revisiting its own past: proximity candidates come from the same session too,
+    # but never from its last exclude_recent_s seconds.
+    asked = []
+
+    def prox(pipeline, q, c):
+        asked.append((q, c))
+        return None  # rejected: nothing enters the graph
+
+    cfg = SlamConfig()
+    cfg.loops.exclude_recent_s = 4.0
+    cfg.loops.proximity_radius_m = 30.0
+    cfg.loops.num_candidates = 1
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, lambda *a: None)
+    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, prox)
+    pipeline.run(scenes[:1])
+    assert asked, "a slow drive stays within 30 m of its own past"
+    kfs = pipeline._kf_by_key
+    for q, c in asked:
+        assert q.session == c.session
+        assert kfs[q].timestamp_us - kfs[c].timestamp_us >= 4.0e6
