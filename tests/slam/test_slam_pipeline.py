@@ -255,26 +255,38 @@ def test_a_session_after_a_merge_keeps_its_own_group(sim_dataroot):
     assert sorted(len(c.sessions) for c in res.components) == [1, 2]
 
 
-def test_linked_sessions_close_loops_by_proximity(reader):
-    # Once the second session is linked (two scripted votes), its later key frames are registered
-    # against the nearest key frame of the map, guided by the prediction, without the recognizer.
+def _run_with_proximity(reader, scenes, accept, prox, **loops):
+    """A run with scripted recognition votes (``accept``) and scripted proximity verification
+    (``prox``, None: the real verifier must never be asked); returns (pipeline, result, asked)."""
     asked = []
 
-    def accept(pipeline, q, c):
-        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 1) else None
-
-    def prox(pipeline, q, c):
+    def record(pipeline, q, c):
         asked.append((q, c))
-        return _true_pose(pipeline, q, c)
+        return prox(pipeline, q, c) if prox is not None else pytest.fail("proximity called")
 
-    scenes = [s.name for s in reader.scenes()]
     cfg = SlamConfig()
     cfg.loops.min_key_frames_between_loops = 0
     cfg.loops.proximity_radius_m = 30.0
+    for name, value in loops.items():
+        setattr(cfg.loops, name, value)
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
     pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
-    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, prox)
-    res = pipeline.run(scenes)
+    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, record)
+    return pipeline, pipeline.run(scenes), asked
+
+
+def _link_votes_up_to(max_query_index, min_query_index=0):
+    def accept(pipeline, q, c):
+        vote = _is_link_pair(pipeline, q, c, max_query_index) and q.index >= min_query_index
+        return _true_pose(pipeline, q, c) if vote else None
+
+    return accept
+
+
+def test_linked_sessions_close_loops_by_proximity(reader, scenes):
+    # Once the second session is linked (two scripted votes), its later key frames are registered
+    # against the nearest key frame of the map, guided by the prediction, without the recognizer.
+    pipeline, res, asked = _run_with_proximity(reader, scenes, _link_votes_up_to(1), _true_pose)
     first, second = scenes
     assert asked, "linked key frames near the map must be verified by proximity"
     kfs = pipeline._kf_by_key
@@ -292,41 +304,17 @@ def test_linked_sessions_close_loops_by_proximity(reader):
     assert len(res.components) == 1
 
 
-def test_proximity_search_can_be_switched_off(reader):
-    def accept(pipeline, q, c):
-        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 1) else None
-
-    cfg = SlamConfig()
-    cfg.loops.min_key_frames_between_loops = 0
-    cfg.loops.proximity_radius_m = None
-    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
-    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, lambda *a: pytest.fail("called"))
-    res = pipeline.run([s.name for s in reader.scenes()])
-    assert len(res.accepted_loops) == 2
+def test_proximity_search_can_be_switched_off(reader, scenes):
+    _, res, asked = _run_with_proximity(
+        reader, scenes, _link_votes_up_to(1), None, proximity_radius_m=None
+    )
+    assert asked == [] and len(res.accepted_loops) == 2
 
 
-def test_key_frames_before_the_link_are_caught_up_by_proximity(reader):
+def test_key_frames_before_the_link_are_caught_up_by_proximity(reader, scenes):
     # The link votes come at key frames 2 and 3 of the second session; key frames 0 and 1, which
     # revisit the first session's end too, must be verified by proximity once the link exists.
-    asked = []
-
-    def accept(pipeline, q, c):
-        late_vote = _is_link_pair(pipeline, q, c, 3) and q.index >= 2
-        return _true_pose(pipeline, q, c) if late_vote else None
-
-    def prox(pipeline, q, c):
-        asked.append((q, c))
-        return _true_pose(pipeline, q, c)
-
-    scenes = [s.name for s in reader.scenes()]
-    cfg = SlamConfig()
-    cfg.loops.min_key_frames_between_loops = 0
-    cfg.loops.proximity_radius_m = 30.0
-    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
-    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, prox)
-    res = pipeline.run(scenes)
+    _, res, asked = _run_with_proximity(reader, scenes, _link_votes_up_to(3, 2), _true_pose)
     assert len(res.components) == 1
     first_asks = [q.index for q, _ in asked if q.index < 2]
     assert first_asks == [0, 1], "each earlier key frame is caught up once, in order"
@@ -397,20 +385,14 @@ def test_a_dead_odometry_process_is_a_clear_error(reader, scenes):
 def test_proximity_search_within_one_session_skips_its_recent_past(reader, scenes):
     # A session revisiting its own past: proximity candidates come from the same session too,
     # but never from its last exclude_recent_s seconds.
-    asked = []
-
-    def prox(pipeline, q, c):
-        asked.append((q, c))
-        return None  # rejected: nothing enters the graph
-
-    cfg = SlamConfig()
-    cfg.loops.exclude_recent_s = 4.0
-    cfg.loops.proximity_radius_m = 30.0
-    cfg.loops.num_candidates = 1
-    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, lambda *a: None)
-    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, prox)
-    pipeline.run(scenes[:1])
+    pipeline, _, asked = _run_with_proximity(
+        reader,
+        scenes[:1],
+        lambda *a: None,
+        lambda *a: None,  # rejected: nothing enters the graph
+        exclude_recent_s=4.0,
+        num_candidates=1,
+    )
     assert asked, "a slow drive stays within 30 m of its own past"
     kfs = pipeline._kf_by_key
     for q, c in asked:
