@@ -128,14 +128,21 @@ class _AllCandidates:
         return PlaceRecognizerConfig()
 
 
-def _run_scripted(reader, accept):
-    scenes = [s.name for s in reader.scenes()]
+def _scripted_pipeline(reader, accept, **loops):
+    """A pipeline proposing every earlier key frame, whose verifier accepts what ``accept``
+    gives a pose for; ``loops`` overrides loop-detection settings."""
     cfg = SlamConfig()
     cfg.loops.num_candidates = 50
     cfg.loops.min_key_frames_between_loops = 0
+    for name, value in loops.items():
+        setattr(cfg.loops, name, value)
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
     pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
-    return pipeline.run(scenes)
+    return pipeline
+
+
+def _run_scripted(reader, accept):
+    return _scripted_pipeline(reader, accept).run([s.name for s in reader.scenes()])
 
 
 def _true_pose(pipeline, query, candidate):
@@ -218,12 +225,7 @@ def test_unplaced_sessions_chain_into_the_map_as_a_group(sim_dataroot):
             return _true_pose(pipeline, q, c)
         return None
 
-    cfg = SlamConfig()
-    cfg.loops.num_candidates = 50
-    cfg.loops.min_key_frames_between_loops = 0
-    cfg.loops.unlinked_candidates_per_key_frame = 50
-    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    pipeline = _scripted_pipeline(reader, accept, unlinked_candidates_per_key_frame=50)
     res = pipeline.run(names)
     assert len(res.components) == 1
     for s in res.sessions:
@@ -243,12 +245,7 @@ def test_a_session_after_a_merge_keeps_its_own_group(sim_dataroot):
         s1, s2, _ = names
         return _true_pose(pipeline, q, c) if (q.session, c.session) == (s2, s1) else None
 
-    cfg = SlamConfig()
-    cfg.loops.num_candidates = 50
-    cfg.loops.min_key_frames_between_loops = 0
-    cfg.loops.unlinked_candidates_per_key_frame = 50
-    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    pipeline = _scripted_pipeline(reader, accept, unlinked_candidates_per_key_frame=50)
     res = pipeline.run(names)
     groups = [pipeline.sessions[n].group for n in names]
     assert groups[0] == groups[1] != groups[2]
@@ -264,13 +261,8 @@ def _run_with_proximity(reader, scenes, accept, prox, **loops):
         asked.append((q, c))
         return prox(pipeline, q, c) if prox is not None else pytest.fail("proximity called")
 
-    cfg = SlamConfig()
-    cfg.loops.min_key_frames_between_loops = 0
-    cfg.loops.proximity_radius_m = 30.0
-    for name, value in loops.items():
-        setattr(cfg.loops, name, value)
-    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    loops = {"num_candidates": 3, "proximity_radius_m": 30.0, **loops}
+    pipeline = _scripted_pipeline(reader, accept, **loops)
     pipeline.proximity_verifier = _ScriptedVerifier(pipeline, record)
     return pipeline, pipeline.run(scenes), asked
 
