@@ -52,7 +52,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from radarslam.errors import DataError
-from radarslam.geometry import invert, wrap_angle
+from radarslam.geometry import invert, se2_to_matrix, wrap_angle
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.records import LoopCandidate, NodeKey
 from radarslam.types import SceneInfo
@@ -193,7 +193,7 @@ class SlamTimings:
     key_frames: int = 0
     data_s: float = 0.0
     odometry_s: float = 0.0
-    key_frame_s: float = 0.0  # accumulation and local maps
+    key_frame_s: float = 0.0  # accumulating the key-frame clouds (odometry side)
     place_recognition_s: float = 0.0
     verification_s: float = 0.0
     backend_s: float = 0.0
@@ -237,8 +237,6 @@ def _se2_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 def _se2_mean(poses: list[np.ndarray]) -> np.ndarray:
     """Mean of nearby planar poses: mean translation, circular mean of the yaw."""
-    from radarslam.geometry import se2_to_matrix
-
     t = np.mean([p[:2, 3] for p in poses], axis=0)
     yaws = np.array([np.arctan2(p[1, 0], p[0, 0]) for p in poses])
     yaw = float(np.arctan2(np.sin(yaws).mean(), np.cos(yaws).mean()))
