@@ -75,6 +75,11 @@ def main(argv=None) -> int:
     ap.add_argument("--train-preset", default="compact_cpu")
     ap.add_argument("--train-set", action="append", default=[], help="train override k=v")
     ap.add_argument("--no-train", action="store_true", help="only use given checkpoints")
+    ap.add_argument(
+        "--te-init-from-se",
+        action="store_true",
+        help="two-stage training: TE variants start from the trained SE variant's encoder",
+    )
     ap.add_argument("--device", default="cpu", help="descriptor device")
     ap.add_argument("--sizes", default="compact,paper", help="model sizes to evaluate")
     ap.add_argument("--threads", type=int, default=2, help="CPU threads for throughput")
@@ -154,7 +159,7 @@ def main(argv=None) -> int:
             data, data_nodpr, args.out / "train", size=size, train_preset=train_preset,
             eval_cfg=eval_cfg, checkpoint_dir=args.checkpoint_dir,
             train_overrides=args.train_set, allow_train=can_train, variants=variants,
-            device=args.device, on_variant=show,
+            device=args.device, on_variant=show, te_init_from_se=args.te_init_from_se and can_train,
         )  # fmt: skip
         runs_by_size[size] = runs
         for run in runs:

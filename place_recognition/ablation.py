@@ -146,8 +146,14 @@ def run_ablation(
     variants: tuple[Variant, ...] = VARIANTS,
     progress: bool = True,
     on_variant: Callable[[VariantRun], None] | None = None,
+    te_init_from_se: bool = False,
 ) -> list[VariantRun]:
-    """All variants; returns their runs (rows ordered as the paper's Table II)."""
+    """All variants; returns their runs (rows ordered as the paper's Table II).
+
+    ``te_init_from_se``: a TE variant that is trained here starts its encoder from the SE variant
+    with the same DPR setting (two-stage training; that SE variant must come first in
+    ``variants`` or have a checkpoint).
+    """
     for k in ("database", "train", "val", "test"):
         if not np.array_equal(data_dpr.splits[k], data_nodpr.splits[k]):
             raise CheckpointError(
@@ -157,10 +163,22 @@ def run_ablation(
     presets = model_presets or {"se": f"{size}_se", "se_te": f"{size}_se_te"}
     eval_cfg = eval_cfg or EvalConfig()
     runs = []
+    checkpoints: dict[str, Path] = {}
     for v in variants:
+        overrides = list(train_overrides or [])
+        if te_init_from_se and v.temporal:
+            se_slug = "se_dpr" if v.dpr else "se"
+            se_ckpt = checkpoints.get(se_slug) or find_checkpoint(checkpoint_dir, size, se_slug)
+            if se_ckpt is None:
+                raise CheckpointError(
+                    f"{size} {v.name}: two-stage training needs the {size} {se_slug} checkpoint "
+                    "first (run that variant before it)"
+                )
+            overrides.append(f"init_encoder_from={se_ckpt}")
         run = run_variant(v, data_dpr if v.dpr else data_nodpr, size, presets, train_preset,
-                          out_dir, eval_cfg, checkpoint_dir, train_overrides, allow_train,
+                          out_dir, eval_cfg, checkpoint_dir, overrides, allow_train,
                           tune_rcshr, device, progress)  # fmt: skip
+        checkpoints[v.slug] = run.checkpoint
         runs.append(run)
         if on_variant:
             on_variant(run)

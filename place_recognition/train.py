@@ -101,6 +101,11 @@ class TrainConfig(StrictModel):
     # epoch, and only once an epoch past select_after_epoch exists, so a best checkpoint does).
     time_budget_s: float | None = Field(None, gt=0)
     recall_ns: list[int] = Field(default_factory=lambda: [1, 5, 10, 20], min_length=1)
+    #: Start the spatial encoder from this checkpoint's (an SE or SE+TE model with the same
+    #: encoder layers); the LSTM still starts from scratch. Two-stage training: a compact LSTM
+    #: learnt jointly with a randomly initialised trunk settles below the SE alone on DPR'd data.
+    #: Ignored when resuming (the run's own weights win).
+    init_encoder_from: str | None = None
 
     @model_validator(mode="after")
     def _check(self) -> TrainConfig:
@@ -524,7 +529,10 @@ def train(
 
         # channels_last: oneDNN (CPU) and cuDNN (GPU) convolutions run faster in NHWC; measured
         # 1.5-1.8x for a compact training step on 2 CPU threads.
-        net = build_model(model_cfg).to(device, memory_format=torch.channels_last)
+        net = build_model(model_cfg)
+        if train_cfg.init_encoder_from and not resume:
+            init_encoder(net, train_cfg.init_encoder_from)
+        net = net.to(device, memory_format=torch.channels_last)
         optimizer = torch.optim.SGD(
             net.parameters(),
             lr=train_cfg.lr,
@@ -749,6 +757,28 @@ def _budget_spent(
         torch.distributed.broadcast(flag, src=0)
         spent = bool(flag.item() > 0)
     return spent
+
+
+def init_encoder(net: torch.nn.Module, path: str | Path) -> int:
+    """Copy the spatial encoder's weights of checkpoint ``path`` into ``net``; returns the count.
+
+    The encoders must match layer for layer (same widths, convolutions per block, input channels
+    and normalisation); anything else is a one-line CheckpointError naming the file.
+    """
+    payload = read_checkpoint(path)
+    stored = {k: v for k, v in payload["state_dict"].items() if k.startswith("encoder.")}
+    own = {k: v for k, v in net.state_dict().items() if k.startswith("encoder.")}
+    src = payload["model_config"]
+    mismatch = [
+        f"{key}: {src.get(key)!r} != {getattr(net.cfg, key)!r}"
+        for key in ("widths", "convs_per_block", "in_channels", "input_norm", "image_size_px")
+        if src.get(key) != getattr(net.cfg, key)
+    ]
+    if mismatch or set(stored) != set(own):
+        detail = "; ".join(mismatch) or "different encoder layers"
+        raise CheckpointError(f"{path}: encoder does not match the model being trained ({detail})")
+    net.load_state_dict({k: v.float() for k, v in stored.items()}, strict=False)
+    return len(stored)
 
 
 def _load_resume_state(path: Path, model_cfg: ModelConfig, train_cfg: TrainConfig) -> dict:
