@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from pr_synthetic import TINY  # the tiny AutoPlace model shared by the model tests
+from pr_synthetic import TINY, corridor_data  # shared with the model and ablation tests
 
 from place_recognition.checkpoint import load_model, read_checkpoint
-from place_recognition.dataset import PreparedData, build_sequences
 from place_recognition.models import build_model
 from place_recognition.train import (
     FrameStore,
@@ -20,6 +19,7 @@ from place_recognition.train import (
     Triplet,
     _triplet_step_loss,
     compute_descriptors,
+    init_encoder,
     load_train_config,
     mine_triplets,
     recall_at_n_from_descriptors,
@@ -30,56 +30,6 @@ from radarslam.errors import CheckpointError, ConfigError, DataError
 
 # One thread: CPU convolution backward is only bitwise deterministic single-threaded.
 FAST = dict(epochs=4, select_after_epoch=0, patience=0, seed=1234, threads=1, device="cpu")
-
-
-def corridor_data(seed: int = 0, n_db: int = 60, size: int = 32, step_m: float = 2.0):
-    """Four drives along a 118 m corridor of random landmarks, seen as 32x32 occupancy at 1 m/px.
-
-    The database drive samples every 2 m on the centre line; train / val / test drives are shifted
-    along (0.5-1.5 m) and across (0.4-0.8 m) it, lose 25% of the landmarks per frame and gain 12
-    clutter cells, so places must be recognised from partial, noisy, shifted views.
-    """
-    rng = np.random.default_rng(seed)
-    half = size // 2
-    length = (n_db - 1) * step_m
-    landmarks = np.column_stack(
-        [rng.uniform(-half - 4, length + half + 4, 700), rng.uniform(-half, half, 700)]
-    )
-    drives = [("db", 0.0, 0.0, n_db), ("train", 1.0, 0.4, n_db - 1)]
-    drives += [("val", 0.5, -0.4, n_db - 1), ("test", 1.5, 0.8, n_db - 1)]
-    images, positions, names = [], [], []
-    for name, x0, y0, count in drives:
-        for k in range(count):
-            x = x0 + k * step_m
-            rel = landmarks - (x, y0)
-            rel = rel[rng.random(len(rel)) < 0.75]
-            r = np.round(rel[:, 0]).astype(int) + half
-            c = np.round(rel[:, 1]).astype(int) + half
-            ok = (r >= 0) & (r < size) & (c >= 0) & (c < size)
-            img = np.zeros((size, size), np.uint8)
-            img[r[ok], c[ok]] = 1
-            img[rng.integers(0, size, 12), rng.integers(0, size, 12)] = 1
-            images.append(img)
-            positions.append((x, y0))
-            names.append(name)
-    names = np.array(names)
-    n = len(names)
-    splits = {}
-    for split, tag in (("database", "db"), ("train", "train"), ("val", "val"), ("test", "test")):
-        idx = np.flatnonzero(names == tag)
-        splits[split] = idx if split == "database" else idx[2:]  # queries have two past frames
-    return PreparedData(
-        root=Path("synthetic-corridor"),
-        images=np.stack(images),
-        positions_xy=np.array(positions, dtype=float),
-        yaw_rad=np.zeros(n),
-        timestamps_us=np.arange(n, dtype=np.int64) * 500_000,
-        scene_names=names,
-        sample_tokens=np.array([f"token{i}" for i in range(n)]),
-        rcs=[np.zeros(0, np.float32)] * n,
-        sequences=build_sequences(names, 3),
-        splits=splits,
-    )
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -352,15 +302,21 @@ def test_bad_data_is_data_error(data, tmp_path):
         train(TrainConfig(**FAST), wrong_size, data, tmp_path, progress=False)
 
 
-def test_export_weights_writes_float16_checkpoint_and_json(data, full_run, tmp_path):
+def _train_weights_tool():
     import importlib.util
-    import json
 
     spec = importlib.util.spec_from_file_location(
         "train_weights", Path(__file__).resolve().parents[2] / "tools" / "train_weights.py"
     )
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
+    return tool
+
+
+def test_export_weights_writes_float16_checkpoint_and_json(data, full_run, tmp_path):
+    import json
+
+    tool = _train_weights_tool()
     result, _ = full_run
     weights = tmp_path / "weights" / "compact.pt"
     info = tool.export_weights(result.best_checkpoint, data, weights, extra={"note": "test"})
@@ -398,3 +354,78 @@ def test_epochs_without_triplets_still_validate(data, tmp_path):
     # no step was taken: validation equals that of the initial weights
     assert result.history[0]["val_recall@1"] == _fresh_recall(data)
     assert result.best_epoch == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# two-stage training
+
+TINY_SE = TINY.model_copy(update={"seq_len": 1, "use_temporal": False, "descriptor_dim": None})
+
+
+@pytest.fixture(scope="module")
+def se_run(data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("se")
+    cfg = TrainConfig(**{**FAST, "epochs": 2})
+    return train(cfg, TINY_SE, data, out, progress=False)
+
+
+def test_init_encoder_copies_the_encoder_and_leaves_the_lstm(se_run):
+    se, _, _ = load_model(se_run.best_checkpoint)
+    torch.manual_seed(7)
+    te = build_model(TINY)
+    lstm_before = {k: v.clone() for k, v in te.state_dict().items() if k.startswith("lstm.")}
+    assert init_encoder(te, se_run.best_checkpoint) == len(se.encoder.state_dict())
+    for k, v in se.encoder.state_dict().items():
+        assert torch.equal(te.encoder.state_dict()[k], v)
+    for k, v in lstm_before.items():
+        assert torch.equal(te.state_dict()[k], v)
+
+
+def test_two_stage_training_starts_from_the_se_encoder(data, se_run, tmp_path):
+    # another seed than the SE run's, so a fresh encoder would start elsewhere
+    ckpt = str(se_run.best_checkpoint)
+    cfg = TrainConfig(**{**FAST, "epochs": 1, "seed": 99, "init_encoder_from": ckpt})
+    result = train(cfg, TINY, data, tmp_path, progress=False)
+    assert read_checkpoint(result.best_checkpoint)["train_config"]["init_encoder_from"] == ckpt
+    se, _, _ = load_model(se_run.best_checkpoint)
+    te, _, _ = load_model(result.best_checkpoint)
+    torch.manual_seed(99)
+    fresh = build_model(TINY)
+    for i in (0, 3):  # both convolutions: one epoch of SGD moves them only a little
+        w_se, w_te, w_fresh = se.encoder[i].weight, te.encoder[i].weight, fresh.encoder[i].weight
+        assert (w_te - w_se).norm() < 0.3 * (w_fresh - w_se).norm()
+
+
+def test_init_encoder_refuses_another_encoder(se_run, tmp_path):
+    wider = TINY.model_copy(update={"widths": [4, 16]})
+    with pytest.raises(CheckpointError, match=r"best\.pt: encoder does not match .*widths"):
+        init_encoder(build_model(wider), se_run.best_checkpoint)
+    with pytest.raises(CheckpointError, match=r"nope\.pt: checkpoint file does not exist"):
+        init_encoder(build_model(TINY), tmp_path / "nope.pt")
+
+
+def test_train_weights_two_stage(data, tmp_path, monkeypatch):
+    import json
+
+    import yaml
+
+    import place_recognition.dataset
+
+    tool = _train_weights_tool()
+    monkeypatch.setattr(place_recognition.dataset, "load_prepared", lambda root: data)
+    (tmp_path / "model.yaml").write_text(yaml.safe_dump(TINY.model_dump(mode="json")))
+    (tmp_path / "train.yaml").write_text(yaml.safe_dump({**FAST, "epochs": 2}))
+    weights = tmp_path / "w.pt"
+    argv = ["--prepared", str(tmp_path), "--model", str(tmp_path / "model.yaml"), "--train",
+            str(tmp_path / "train.yaml"), "--work-dir", str(tmp_path / "work"), "--weights",
+            str(weights), "--two-stage", "--quiet"]  # fmt: skip
+    assert tool.main(argv) == 0
+    saved = json.loads(weights.with_suffix(".json").read_text())
+    encoder = tmp_path / "work" / "encoder_stage" / "best.pt"
+    assert saved["train_config"]["init_encoder_from"] == str(encoder)
+    assert len(saved["encoder_stage_history"]) == 2 and len(saved["history"]) == 2
+    assert read_checkpoint(encoder)["model_config"]["use_temporal"] is False
+    se = TINY.model_copy(update={"seq_len": 1, "use_temporal": False, "descriptor_dim": None})
+    (tmp_path / "se.yaml").write_text(yaml.safe_dump(se.model_dump(mode="json")))
+    argv[3] = str(tmp_path / "se.yaml")
+    assert tool.main(argv) == 2  # an SE model has no TE to train in a second stage
