@@ -116,6 +116,18 @@ class _Interval:
         self.anchor_icp_cov = icp_cov
 
 
+def along_track_covariance(delta: np.ndarray, fraction: float) -> np.ndarray:
+    """(3, 3) variance ``(fraction * |step|)^2`` along the translation of ``delta`` (a relative
+    SE(2) motion, 4x4), in the body frame of the pose it ends at (the fusion's right
+    perturbation); zero when it does not move."""
+    step = np.asarray(delta, dtype=np.float64)[:2, 3]
+    # The motion direction expressed at the end pose: R_delta^T step.
+    u = step @ np.asarray(delta, dtype=np.float64)[:2, :2]
+    out = np.zeros((3, 3))
+    out[:2, :2] = fraction**2 * np.outer(u, u)
+    return out
+
+
 def _fuse_cov(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Covariance of the information-weighted fusion of two independent estimates."""
     info = np.linalg.inv(a + np.eye(3) * 1e-12) + np.linalg.inv(b + np.eye(3) * 1e-12)
@@ -284,6 +296,10 @@ class RadarOdometry:
             if not first and not reg.empty and len(source) >= cfg.registration.min_source_points:
                 reg_result = reg.align(source, predicted)
                 icp_cov = _sym(reg_result.covariance) * cfg.fusion.icp_cov_scale
+                frac = cfg.fusion.icp_along_track_sigma_fraction
+                if frac is not None and fit.valid:
+                    # kept for the key-frame covariances too: along track, ICP adds nothing
+                    icp_cov = icp_cov + along_track_covariance(delta, frac)
                 pose, pose_cov, accepted, status = self._fuse(
                     predicted, pose_cov, reg_result, icp_cov
                 )
