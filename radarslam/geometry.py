@@ -5,6 +5,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -64,11 +66,11 @@ def invert(pose: np.ndarray) -> np.ndarray:
 
 def se2_to_matrix(x: float, y: float, yaw: float) -> np.ndarray:
     """4x4 pose of a planar (x, y, yaw) motion."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    pose = np.eye(4)
-    pose[:2, :2] = [[c, -s], [s, c]]
-    pose[0, 3], pose[1, 3] = x, y
-    return pose
+    # math and one np.array: called ~20 times per odometry frame, np.eye + slicing cost 3x more
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [[c, -s, 0.0, float(x)], [s, c, 0.0, float(y)], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    )
 
 
 def matrix_to_se2(pose: np.ndarray) -> np.ndarray:

@@ -5,6 +5,8 @@ A perturbation ``eps`` of a pose ``T`` is applied on the right (body frame): ``T
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from radarslam.geometry import se2_to_matrix
@@ -21,10 +23,13 @@ def _v_matrix(theta: float) -> np.ndarray:
 
 def exp_se2(xi) -> np.ndarray:
     """4x4 pose of the tangent vector ``(rho_x, rho_y, theta)`` (a constant twist times dt)."""
-    rho = np.array([xi[0], xi[1]], dtype=np.float64)
-    theta = float(xi[2])
-    t = _v_matrix(theta) @ rho
-    return se2_to_matrix(t[0], t[1], theta)
+    rx, ry, theta = float(xi[0]), float(xi[1]), float(xi[2])
+    if abs(theta) < 1e-6:
+        a, b = 1.0 - theta * theta / 6.0, 0.5 * theta
+    else:
+        a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta
+    # V(theta) @ rho written out: the 2x2 matrix product cost more than the rest of the call
+    return se2_to_matrix(a * rx - b * ry, b * rx + a * ry, theta)
 
 
 def log_se2(pose: np.ndarray) -> np.ndarray:
@@ -45,7 +50,7 @@ def adjoint_se2(pose: np.ndarray) -> np.ndarray:
 
 def planar(pose: np.ndarray) -> np.ndarray:
     """Project a 4x4 pose onto SE(2) (x, y, yaw; z = roll = pitch = 0), exactly orthonormal."""
-    return se2_to_matrix(pose[0, 3], pose[1, 3], float(np.arctan2(pose[1, 0], pose[0, 0])))
+    return se2_to_matrix(pose[0, 3], pose[1, 3], math.atan2(pose[1, 0], pose[0, 0]))
 
 
 def exp_jacobian_twist(xi: np.ndarray) -> np.ndarray:
