@@ -50,3 +50,14 @@ def mini_prepared(mini_dataroot, tmp_path_factory) -> Path:
 
     out = tmp_path_factory.mktemp("pr_prepared")
     return prepare(_mini_prepare_config(mini_dataroot), out, progress=False)
+
+
+@pytest.fixture(scope="module")
+def torch_one_thread():
+    """One torch thread for the whole test module, restored afterwards."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-import torch
 import yaml
 from pr_synthetic import TINY, corridor_data
 
@@ -12,13 +11,8 @@ from place_recognition.checkpoint import read_checkpoint
 from place_recognition.config import EvalConfig
 from radarslam.errors import CheckpointError
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# CPU convolution backward is bitwise deterministic only on one thread
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -32,12 +32,8 @@ from radarslam.errors import CheckpointError, ConfigError, DataError
 FAST = dict(epochs=4, select_after_epoch=0, patience=0, seed=1234, threads=1, device="cpu")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# CPU convolution backward is bitwise deterministic only on one thread
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")
