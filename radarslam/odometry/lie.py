@@ -12,22 +12,23 @@ import numpy as np
 from radarslam.geometry import se2_to_matrix
 
 
-def _v_matrix(theta: float) -> np.ndarray:
+def _v_coeffs(theta: float) -> tuple[float, float]:
+    """(a, b) of V(theta) = [[a, -b], [b, a]], the SE(2) exponential's translation part."""
     if abs(theta) < 1e-6:
         # Taylor expansion: sin(t)/t ~ 1 - t^2/6, (1 - cos t)/t ~ t/2.
-        a, b = 1.0 - theta * theta / 6.0, 0.5 * theta
-    else:
-        a, b = np.sin(theta) / theta, (1.0 - np.cos(theta)) / theta
+        return 1.0 - theta * theta / 6.0, 0.5 * theta
+    return math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta
+
+
+def _v_matrix(theta: float) -> np.ndarray:
+    a, b = _v_coeffs(theta)
     return np.array([[a, -b], [b, a]])
 
 
 def exp_se2(xi) -> np.ndarray:
     """4x4 pose of the tangent vector ``(rho_x, rho_y, theta)`` (a constant twist times dt)."""
     rx, ry, theta = float(xi[0]), float(xi[1]), float(xi[2])
-    if abs(theta) < 1e-6:
-        a, b = 1.0 - theta * theta / 6.0, 0.5 * theta
-    else:
-        a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta
+    a, b = _v_coeffs(theta)
     # V(theta) @ rho written out: the 2x2 matrix product cost more than the rest of the call
     return se2_to_matrix(a * rx - b * ry, b * rx + a * ry, theta)
 
