@@ -194,6 +194,7 @@ class RadarOdometry:
             line_neighbors=r.line_neighbors,
             mirror_every=r.mirror_every,
             refine_iterations=r.refine_iterations,
+            refine_max_extrapolation=r.refine_max_extrapolation,
         )
 
     # --- points -------------------------------------------------------------------------------

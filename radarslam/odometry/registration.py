@@ -28,6 +28,9 @@ import numpy as np
 
 from radarslam.odometry.lie import exp_se2, planar
 
+#: Metric on refinement steps (x, y, yaw): yaw as the arc it sweeps at 10 m.
+_STEP_METRIC = np.array([1.0, 1.0, 100.0])
+
 
 @dataclass(frozen=True)
 class RegistrationResult:
@@ -59,6 +62,7 @@ class ScanToMapRegistration:
         line_neighbors: int,
         mirror_every: int,
         refine_iterations: int = 0,
+        refine_max_extrapolation: float = 1.0,
     ):
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
@@ -71,6 +75,7 @@ class ScanToMapRegistration:
         self.line_neighbors = line_neighbors
         self.mirror_every = mirror_every
         self.refine_iterations = refine_iterations
+        self.refine_max_extrapolation = refine_max_extrapolation
         self.map = VoxelHashMap(voxel_size_m, max_range_m, max_points_per_voxel)
         # One thread: deterministic, and the machines this runs on are shared.
         self.registration = Registration(max_num_iterations, convergence_criterion, 1)
@@ -141,6 +146,12 @@ class ScanToMapRegistration:
         ``line_neighbors`` nearest map points (within the correspondence distance) averages that
         noise out and restores the pull towards the reflector. Weights: Geman-McClure with
         kiss-icp's kernel ``sigma``.
+
+        The nearest neighbours of a point lie on its side of the cloud, so the mean follows the
+        point as it moves (a mean shift): each step covers only part of the way, and consecutive
+        steps point the same way with a ratio ``rho``. Aitken's extrapolation scales a step by
+        ``1 / (1 - rho)``, the sum of that geometric tail, capped at
+        ``refine_max_extrapolation``; a step that turns back (``rho <= 0``) is taken as is.
         """
         mirror = self._mirror_tree()
         k = self.line_neighbors
@@ -150,6 +161,7 @@ class ScanToMapRegistration:
         pb = source[:, :2]
         px, py = -pb[:, 1], pb[:, 0]
         s2 = sigma**2
+        previous = None
         for _ in range(self.refine_iterations):
             rot, t = pose[:2, :2], pose[:2, 3]
             pw = pb @ rot.T + t
@@ -173,7 +185,16 @@ class ScanToMapRegistration:
             hess = np.array([[sw, 0.0, hxt], [0.0, sw, hyt], [hxt, hyt, w @ (qx * qx + qy * qy)]])
             grad = np.array([w @ rb[:, 0], w @ rb[:, 1], w @ (qx * rb[:, 0] + qy * rb[:, 1])])
             delta = -np.linalg.solve(hess + np.eye(3) * 1e-9, grad)
-            pose = planar(pose @ exp_se2(delta))
+            scale = 1.0
+            if previous is not None and self.refine_max_extrapolation > 1.0:
+                # Yaw weighted as the arc at 10 m, so that both parts count alike.
+                wp = previous * _STEP_METRIC
+                denom = float(wp @ previous)
+                rho = float(wp @ delta) / denom if denom > 0 else 0.0
+                if 0.0 < rho < 1.0:
+                    scale = min(1.0 / (1.0 - rho), self.refine_max_extrapolation)
+            pose = planar(pose @ exp_se2(scale * delta))
+            previous = delta
             if np.abs(delta).max() < 1e-4:  # 0.1 mm, 0.006 deg
                 break
         return pose

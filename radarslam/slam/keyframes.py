@@ -19,9 +19,9 @@ import numpy as np
 
 from radarslam.geometry import invert
 from radarslam.nuscenes.filters import RadarPointFilter
-from radarslam.nuscenes.reader import points_in_reference
+from radarslam.nuscenes.reader import stack_in_reference
 from radarslam.odometry.lie import exp_se2
-from radarslam.types import ACCUMULATED_DTYPE, RADAR_CHANNELS, AccumulatedCloud, RadarSweep
+from radarslam.types import RADAR_CHANNELS, AccumulatedCloud, RadarSweep
 
 
 @dataclass
@@ -110,25 +110,25 @@ class SweepBuffer:
         if ego_from_ref is None:
             return None
         ref_from_world = invert(world_from_ego @ ego_from_ref)
-        chunks, counts = [], {}
+        parts, counts = [], {}
         for ch in self.channels:
             newest_first = [b for b in reversed(self._sweeps[ch])]
             for k, item in enumerate(newest_first):
                 keep = self._mask(item)
                 counts[(ch, k)] = int(np.count_nonzero(keep))
-                if not keep.any():
+                if not counts[(ch, k)]:
                     continue
                 s = item.sweep
-                chunks.append(
-                    points_in_reference(
+                parts.append(
+                    (
                         s.points[keep],
                         ref_from_world @ item.world_from_ego @ s.ego_from_sensor,
-                        channel_index=RADAR_CHANNELS.index(ch),
-                        sweep_index=k,
-                        time_lag_s=(timestamp_us - s.timestamp_us) * 1e-6,
+                        RADAR_CHANNELS.index(ch),
+                        k,
+                        (timestamp_us - s.timestamp_us) * 1e-6,
                     )
                 )
-        points = np.concatenate(chunks) if chunks else np.zeros(0, dtype=ACCUMULATED_DTYPE)
+        points = stack_in_reference(parts)
         return AccumulatedCloud(
             points=points,
             world_from_ref=world_from_ego @ ego_from_ref,

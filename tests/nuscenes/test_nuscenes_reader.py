@@ -11,7 +11,7 @@ from mini_dataroot import MOUNTS, PERIOD_US, VERSION, ego_from_sensor
 from radarslam.errors import DataError
 from radarslam.geometry import invert
 from radarslam.nuscenes.filters import RadarPointFilter
-from radarslam.nuscenes.reader import NuScenesRadar
+from radarslam.nuscenes.reader import NuScenesRadar, stack_in_reference
 from radarslam.types import ACCUMULATED_DTYPE, RADAR_CHANNELS, RADAR_DTYPE
 
 
@@ -298,3 +298,33 @@ def test_bad_dataroot(tmp_path):
     (tmp_path / "v1.0-mini").mkdir()
     with pytest.raises(DataError, match=r"scene\.json: table file is missing"):
         NuScenesRadar(tmp_path)
+
+
+def test_stack_in_reference_is_each_sweep_transformed_then_concatenated():
+    from radarslam.geometry import make_transform
+
+    rng = np.random.default_rng(3)
+    parts, expected = [], []
+    for k, n in enumerate([5, 0, 12, 1]):  # an empty sweep contributes nothing
+        pts = np.zeros(n, dtype=RADAR_DTYPE)
+        for name in ("x", "y", "z", "rcs", "vx", "vy", "vx_comp", "vy_comp"):
+            pts[name] = rng.normal(0, 20, n)
+        pts["dyn_prop"] = rng.integers(0, 7, n)
+        q = rng.normal(size=4)
+        pose = make_transform(rng.normal(0, 5, 3), q / np.linalg.norm(q))
+        parts.append((pts, pose, k % 5, k, 0.1 * k))
+        one = np.zeros(n, dtype=ACCUMULATED_DTYPE)
+        xyz = np.column_stack([pts["x"], pts["y"], pts["z"]]) @ pose[:3, :3].T + pose[:3, 3]
+        one["x"], one["y"], one["z"] = xyz.T
+        for a, b in (("vx", "vy"), ("vx_comp", "vy_comp")):
+            v = np.column_stack([pts[a], pts[b], np.zeros(n)]) @ pose[:3, :3].T
+            one[a], one[b] = v[:, 0], v[:, 1]
+        one["rcs"], one["dyn_prop"] = pts["rcs"], pts["dyn_prop"]
+        one["channel"], one["sweep"], one["time_lag_s"] = k % 5, k, 0.1 * k
+        expected.append(one)
+    got = stack_in_reference(parts)
+    want = np.concatenate(expected)
+    assert got.dtype == ACCUMULATED_DTYPE and len(got) == 18
+    for name in ACCUMULATED_DTYPE.names:
+        np.testing.assert_allclose(got[name], want[name], rtol=1e-6, atol=1e-9, err_msg=name)
+    assert len(stack_in_reference([])) == 0

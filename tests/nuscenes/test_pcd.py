@@ -128,3 +128,18 @@ def test_error_names_the_file(tmp_path):
         read_pcd(p)
     msg = str(exc.value)
     assert msg.startswith(str(p)) and "\n" not in msg
+
+
+def test_a_header_seen_before_still_checks_its_file():
+    """Headers are parsed once per distinct header; the next file with the same header must still
+    be read in full and still fail when it is truncated."""
+    a, b = make_points(7, seed=1), make_points(7, seed=2)
+    assert parse_pcd_bytes(header(7) + a.tobytes() + b"\0").tobytes() == a.tobytes()
+    assert parse_pcd_bytes(header(7) + b.tobytes() + b"\0").tobytes() == b.tobytes()
+    with pytest.raises(DataError, match="truncated: header says 7 points"):
+        parse_pcd_bytes(header(7) + b.tobytes()[:-3], "c.pcd")
+    # a header that failed is never remembered: it fails again
+    bad = header(7, sizes=["8", *SIZES[1:]]) + a.tobytes()
+    for _ in range(2):
+        with pytest.raises(DataError, match="'x' is SIZE 8"):
+            parse_pcd_bytes(bad)
