@@ -73,6 +73,18 @@ class LoopDetectionConfig(StrictModel):
     #: A session not yet in the map verifies at most this many candidates per key frame (each
     #: needs the costly global search over headings and translations).
     unlinked_candidates_per_key_frame: int = Field(1, ge=1)
+    #: Rotation-invariant candidates (ScanContext, radarslam.slam.scancontext_candidates) for
+    #: key frames of sessions outside the map that AutoPlace did not close: they can find streets
+    #: the map drove the other way round, which AutoPlace's heading-bound image does not.
+    #: Every ``scancontext_every``-th key frame (each search costs a global registration, ~80 ms),
+    #: from the ``local_map_neighbors``-th on (the query's local map must be whole). Off by
+    #: default: on the demo it links the reversed drive (recall 0.84 -> 1.00, 128 of 128 loops
+    #: correct) but costs 11.9x -> 8.8x real time; on the long-scene benchmark it links nothing
+    #: more and costs 11.2x -> 7.8x (docs/results.md).
+    scancontext_search: bool = False
+    scancontext_every: int = Field(2, ge=1)
+    #: Ring-key nearest neighbours re-ranked by the column-shift distance.
+    scancontext_ring_candidates: int = Field(25, ge=1)
     #: A new session joins the map only after this many loops agree on where it is.
     link_min_consistent_loops: int = Field(2, ge=1)
     link_consistency_m: float = Field(3.0, gt=0.0)

@@ -284,6 +284,11 @@ class SlamPipeline:
                 }
             )
         )
+        self.scancontext = None
+        if cfg.loops.enabled and cfg.loops.scancontext_search:
+            from radarslam.slam.scancontext_candidates import ScanContextCandidates
+
+            self.scancontext = ScanContextCandidates(cfg.loops.scancontext_ring_candidates)
         self.recognizer = recognizer
         if self.recognizer is None and cfg.loops.enabled:
             self.recognizer = load_recognizer(cfg.loops.checkpoint, cfg.loops.recognizer_config)
@@ -530,10 +535,43 @@ class SlamPipeline:
                     break
                 budget -= 1
             closed |= self._verify(session, kf, self._kf_by_key[cand.key], cand.descriptor_distance)
+        if self.scancontext is not None:  # every key frame goes into its database
+            closed |= self._scancontext_search(session, kf, search=not closed)
         if not closed:
             for other in self._proximity_candidates(session, kf):
                 self._verify(session, kf, other, float("nan"), self.proximity_verifier)
         self.timings.verification_s += time.perf_counter() - t1
+
+    def _scancontext_search(self, session: _Session, kf: KeyFrame, search: bool) -> bool:
+        """For a session outside the map: the best rotation-invariant candidate among the other
+        groups' key frames, verified by the global search (see ``loops.scancontext_search``).
+        The key frame is then stored for later queries either way."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        context = self.scancontext.describe(kf.cloud_xy_ego)
+        candidates = []
+        if (
+            search
+            and not self.groups[session.group].in_map
+            and kf.key.index >= cfg.key_frames.local_map_neighbors
+            and kf.key.index % cfg.loops.scancontext_every == 0
+            and kf.key.index - session.last_loop_kf > cfg.loops.min_key_frames_between_loops
+        ):
+            group = session.group
+            candidates = self.scancontext.query(
+                kf.cloud_xy_ego,
+                lambda key: self.sessions[key.session].group != group,
+                k=1,
+                context=context,
+            )
+        self.scancontext.add(kf.key, kf.cloud_xy_ego, context)
+        self.timings.place_recognition_s += time.perf_counter() - t0
+        closed = False
+        for cand in candidates:
+            closed |= self._verify(
+                session, kf, self._kf_by_key[cand.key], cand.distance, source="scancontext"
+            )
+        return closed
 
     def _proximity_candidates(
         self, session: _Session, kf: KeyFrame, among: set[str] | None = None
@@ -625,11 +663,18 @@ class SlamPipeline:
         return None
 
     def _verify(
-        self, session: _Session, query: KeyFrame, cand: KeyFrame, distance: float, verifier=None
+        self,
+        session: _Session,
+        query: KeyFrame,
+        cand: KeyFrame,
+        distance: float,
+        verifier=None,
+        source: str | None = None,
     ) -> bool:
         """Verify one candidate; True when it was accepted (into the graph, a group or a vote)."""
         guess = self._guess(query, cand)
-        source = "recognition" if verifier is None else "proximity"
+        if source is None:
+            source = "recognition" if verifier is None else "proximity"
         if verifier is None:
             verifier = self.verifier if guess is None else self.guided_verifier
         record, ver = verifier.verify_candidate(
