@@ -81,6 +81,12 @@ class LoopVerifierConfig(StrictModel):
     tight_correspondence_m: float = Field(0.3, gt=0)
     min_tight_fitness: float = Field(0.12, ge=0, le=1)
     overlap_cell_m: float = Field(2.0, gt=0)
+    # Degeneracy: the smaller / larger eigenvalue of sum(n n^T) over the point-to-line normals of
+    # the final correspondences (a PCA of the ``normal_neighbors`` nearest candidate points). A
+    # straight street constrains only its cross direction, so a look-alike stretch of it aligns
+    # with good fitness metres away along it; 1 means the normals spread evenly. 0 disables.
+    min_constraint_ratio: float = Field(0.0, ge=0, le=1)
+    normal_neighbors: int = Field(5, ge=2)
     # information = inv(inv(H / sigma^2) + floor): registration Hessian with sigma = inlier RMSE,
     # plus a floor covariance for what point-to-point ICP cannot see (correlated radar points,
     # map blur); the floor bounds how confident a loop closure can ever be.
@@ -209,8 +215,14 @@ class LoopVerifier:
         assert best is not None
         _, pose, fitness, rmse, heading = best
         overlap = self._overlap(q, c, pose)
-        tight, _, _ = self._score(q, c, pose, cfg.tight_correspondence_m, tree)
-        info = self._information(q, c, pose, rmse, tree)
+        # One k-nearest query at the chosen pose serves the tight fitness, the information
+        # matrix (nearest neighbours) and the degeneracy test (local line normals).
+        moved = _transform(q, pose)
+        dist, idx = tree.query(moved, k=min(cfg.normal_neighbors, len(c)))
+        tight = float(np.mean(dist[:, 0] <= cfg.tight_correspondence_m))
+        inlier = dist[:, 0] <= cfg.max_correspondence_m
+        info = self._information(moved[inlier], pose, rmse)
+        constraint = _constraint_ratio(c[idx[inlier]])
         reasons = []
         if fitness < cfg.min_fitness:
             reasons.append(f"fitness {fitness:.2f} < {cfg.min_fitness}")
@@ -220,6 +232,8 @@ class LoopVerifier:
             reasons.append(f"overlap {overlap:.2f} < {cfg.min_overlap}")
         if tight < cfg.min_tight_fitness:
             reasons.append(f"tight_fitness {tight:.3f} < {cfg.min_tight_fitness}")
+        if not constraint >= cfg.min_constraint_ratio:
+            reasons.append(f"constraint_ratio {constraint:.2f} < {cfg.min_constraint_ratio}")
         return LoopVerification(
             accepted=not reasons,
             reason="; ".join(reasons) if reasons else "ok",
@@ -231,6 +245,7 @@ class LoopVerifier:
             initial_heading_deg=float(heading),
             runtime_ms=(time.perf_counter() - t0) * 1e3,
             tight_fitness=float(tight),
+            constraint_ratio=float(constraint),
         )
 
     # --- stages --------------------------------------------------------------------------------
@@ -358,12 +373,12 @@ class LoopVerifier:
         shared = len(np.intersect1d(kq, kc, assume_unique=True))
         return shared / max(1, min(len(kq), len(kc)))
 
-    def _information(self, q, c, pose, rmse, tree=None) -> np.ndarray:
-        """Point-to-point Hessian (left perturbation in the candidate frame), scaled by the inlier
-        RMSE, plus the floor covariance, then moved to gtsam's right perturbation of the
-        ``candidate_from_query`` measurement."""
+    def _information(self, moved: np.ndarray, pose: np.ndarray, rmse: float) -> np.ndarray:
+        """Point-to-point Hessian (left perturbation in the candidate frame) of the aligned query
+        points ``moved`` that have a correspondence, scaled by the inlier RMSE, plus the floor
+        covariance, then moved to gtsam's right perturbation of the ``candidate_from_query``
+        measurement."""
         cfg = self.config
-        _, _, (moved, _) = self._score(q, c, pose, cfg.max_correspondence_m, tree)
         if len(moved) < 3:
             return np.zeros((3, 3))
         # d(p')/d(tx, ty, theta) for p' = exp(xi) p: [[1, 0, -y], [0, 1, x]]
@@ -388,6 +403,27 @@ class LoopVerifier:
         floor = np.diag([cfg.floor_sigma_xy_m**2, cfg.floor_sigma_xy_m**2, yaw_floor**2])
         info = np.linalg.inv(cov + floor)
         return 0.5 * (info + info.T)
+
+
+def _constraint_ratio(neighbours: np.ndarray) -> float:
+    """Smaller / larger eigenvalue of sum(n n^T) over point-to-line normals, one per (k, 2) set of
+    ``neighbours`` (a correspondence's nearest candidate points); 0 with fewer than 3: nothing is
+    constrained."""
+    if len(neighbours) < 3 or neighbours.shape[1] < 2:
+        return 0.0
+    centred = neighbours - neighbours.mean(axis=1, keepdims=True)
+    sxx = np.einsum("mk,mk->m", centred[..., 0], centred[..., 0])
+    syy = np.einsum("mk,mk->m", centred[..., 1], centred[..., 1])
+    sxy = np.einsum("mk,mk->m", centred[..., 0], centred[..., 1])
+    # With a unit normal at angle phi, n n^T = (I + [[cos 2phi, sin 2phi], [sin 2phi, -cos 2phi]])
+    # / 2, so sum(n n^T) has eigenvalues (N -+ R) / 2 with R = |sum e^(2i phi)|, and e^(2i phi) is
+    # minus the direction of the scatter's (sxx - syy, 2 sxy): no eigen-solver per point needed.
+    z = (sxx - syy) + 2j * sxy
+    mag = np.abs(z)
+    line = mag > 0  # an isotropic neighbourhood has no line direction: it adds to N, not to R
+    r = float(np.abs(np.sum(z[line] / mag[line])))
+    n = float(len(neighbours))
+    return (n - r) / (n + r)
 
 
 class _LikelihoodGrid:

@@ -733,6 +733,12 @@ class SlamPipeline:
             return other_from_query_group
         return invert(other_from_query_group)
 
+    def _side(self, vote: _PendingLoop, group: int) -> KeyFrame:
+        """The key frame of a vote between two groups that lies in ``group``."""
+        rec = vote.record
+        key = rec.query if self.sessions[rec.query.session].group == group else rec.candidate
+        return self._kf_by_key[key]
+
     def _try_merge(self, a: int, b: int) -> None:
         """Merge groups ``a`` and ``b`` once enough votes between them agree on their relative
         placement (the largest consistent set wins; the others are rejected as false loops)."""
@@ -745,14 +751,24 @@ class SlamPipeline:
                 self.sessions[v.record.candidate.session].group} == groups_of
         ]  # fmt: skip
         placements = [self._b_from_a(v, a) for v in votes]
-        limits = (cfg.link_consistency_m, cfg.link_consistency_deg)
+        # Where each vote's key frame on side a lies in a's frame: two placements are compared
+        # where the loops are, not at a's origin, which may be hundreds of metres away (a
+        # 0.5 deg difference there is metres of translation, and it would hide a slide along a
+        # street of the same size).
+        at = [self._pose_in_group(self._side(v, a))[:2, 3] for v in votes]
+
+        def agree_on(i: int, j: int) -> bool:
+            t_i, t_j = placements[i], placements[j]
+            moved = max(
+                float(np.hypot(*((t_i[:2, :2] - t_j[:2, :2]) @ x + t_i[:2, 3] - t_j[:2, 3])))
+                for x in (at[i], at[j])
+            )
+            dyaw = abs(_se2_distance(t_i, t_j)[1])
+            return moved <= cfg.link_consistency_m and dyaw <= cfg.link_consistency_deg
+
         best: list[int] = []
-        for t_i in placements:
-            agree = [
-                j
-                for j, t_j in enumerate(placements)
-                if all(d <= lim for d, lim in zip(_se2_distance(t_i, t_j), limits, strict=True))
-            ]
+        for i in range(len(votes)):
+            agree = [j for j in range(len(votes)) if agree_on(i, j)]
             if len(agree) > len(best):
                 best = agree
         if len(best) < cfg.link_min_consistent_loops:

@@ -43,6 +43,9 @@ class LoopVerification:
     runtime_ms: float = 0.0
     #: fraction of query points with a correspondence within the tight distance (0.3 m)
     tight_fitness: float = float("nan")
+    #: smaller / larger eigenvalue of the correspondences' point-to-line normal scatter (1: fully
+    #: constrained, near 0: the alignment can slide along a straight street)
+    constraint_ratio: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +66,7 @@ class LoopCandidate:
     tight_fitness: float = float("nan")
     #: what proposed the candidate: "recognition" (AutoPlace) or "proximity" (the map)
     source: str = "recognition"
+    constraint_ratio: float = float("nan")
 
     @staticmethod
     def from_verification(
@@ -86,6 +90,7 @@ class LoopCandidate:
             inlier_rmse_m=verification.inlier_rmse_m,
             overlap=verification.overlap,
             tight_fitness=verification.tight_fitness,
+            constraint_ratio=verification.constraint_ratio,
         )
 
 
@@ -107,9 +112,11 @@ LOOPS_CSV_COLUMNS: tuple[str, ...] = (
     "yaw_rad",
     "tight_fitness",
     "source",
+    "constraint_ratio",
 )
-#: Files written before ``tight_fitness`` and ``source`` existed are still read.
-_LOOPS_CSV_COLUMNS_V1 = LOOPS_CSV_COLUMNS[:-2]
+#: Files written before ``tight_fitness``, ``source`` and ``constraint_ratio`` existed are read.
+_LOOPS_CSV_COLUMNS_V1 = LOOPS_CSV_COLUMNS[:-3]
+_LOOPS_CSV_COLUMNS_V2 = LOOPS_CSV_COLUMNS[:-1]
 
 
 def write_loops_csv(path: str | Path, loops: list[LoopCandidate]) -> None:
@@ -139,6 +146,7 @@ def write_loops_csv(path: str | Path, loops: list[LoopCandidate]) -> None:
                 repr(float(yaw)),
                 repr(float(lc.tight_fitness)),
                 lc.source,
+                repr(float(lc.constraint_ratio)),
             ]
         )
     write_text_atomic(path, buf.getvalue())
@@ -152,7 +160,7 @@ def read_loops_csv(path: str | Path) -> list[LoopCandidate]:
         reader = csv.reader(fh)
         header = next(reader, None)
         columns = tuple(header) if header is not None else ()
-        if columns not in (LOOPS_CSV_COLUMNS, _LOOPS_CSV_COLUMNS_V1):
+        if columns not in (LOOPS_CSV_COLUMNS, _LOOPS_CSV_COLUMNS_V1, _LOOPS_CSV_COLUMNS_V2):
             raise DataError(f"{path}:1: header is not {','.join(LOOPS_CSV_COLUMNS)}")
         out = []
         for lineno, row in enumerate(reader, start=2):
@@ -180,6 +188,7 @@ def read_loops_csv(path: str | Path) -> list[LoopCandidate]:
                     overlap=float(r["overlap"]),
                     tight_fitness=float(r.get("tight_fitness", "nan")),
                     source=r.get("source", "recognition"),
+                    constraint_ratio=float(r.get("constraint_ratio", "nan")),
                 )
             except (ValueError, KeyError):
                 raise DataError(f"{path}:{lineno}: malformed loop row {','.join(row)!r}") from None

@@ -141,3 +141,34 @@ def test_max_range_crops_far_points_before_registration():
     assert res.accepted and _pose_error(res.candidate_from_query, true)[0] < 0.15
     # every point beyond the range gone: too few left when only far points remain
     assert "too few points" in cropped.verify(far.repeat(50, 0), cand, true).reason
+
+
+def _corridor(seed, q_from_street, length_m=120.0):
+    """Two straight kerb lines 12 m apart with parked-car clutter seen from two poses: nothing
+    but the lines' cross direction is constrained."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-length_m / 2, length_m / 2, size=(2, int(length_m * 2)))
+    street = np.column_stack(
+        [np.r_[x[0], x[1]], np.r_[np.full(x.shape[1], 6.0), np.full(x.shape[1], -6.0)]]
+    )
+    query = observe_place(street, q_from_street, seed=seed + 1, clutter_fraction=0.0)
+    cand = observe_place(street, np.eye(4), seed=seed + 2, clutter_fraction=0.0)
+    return query, cand
+
+
+def test_constraint_ratio_flags_a_street_that_only_constrains_its_cross_direction():
+    loose = LoopVerifier(LoopVerifierConfig(correlative_search=False, heading_step_deg=360))
+    query, cand = _corridor(1, se2_to_matrix(-3.0, 0.5, 0.02))
+    true = invert(se2_to_matrix(-3.0, 0.5, 0.02))
+    # started 3 m along the street from the truth, ICP stays there with a fit as good as the truth's
+    slid = loose.verify(query, cand, true @ se2_to_matrix(3, 0, 0))
+    assert slid.accepted and _pose_error(slid.candidate_from_query, true)[0] > 2.0
+    assert slid.constraint_ratio < 0.1
+    place_query, place_cand, place_true = _revisit(3, se2_to_matrix(4.0, -3.0, 0.2))
+    assert loose.verify(place_query, place_cand, place_true).constraint_ratio > 0.5
+    strict = LoopVerifier(
+        LoopVerifierConfig(correlative_search=False, heading_step_deg=360, min_constraint_ratio=0.5)
+    )
+    v = strict.verify(query, cand, true)
+    assert not v.accepted and v.reason.startswith("constraint_ratio")
+    assert strict.verify(place_query, place_cand, place_true).accepted

@@ -22,6 +22,7 @@ def test_loops_csv_round_trip(tmp_path):
             0.7,
             tight_fitness=0.15,
             source="proximity",
+            constraint_ratio=0.83,
         ),
         LoopCandidate(
             NodeKey("scene-0002", 1),
@@ -45,17 +46,25 @@ def test_loops_csv_round_trip(tmp_path):
     assert back[0].fitness == 0.9 and np.isnan(back[1].fitness)
     assert (back[0].tight_fitness, back[0].source) == (0.15, "proximity")
     assert np.isnan(back[1].tight_fitness) and back[1].source == "recognition"
+    assert back[0].constraint_ratio == 0.83 and np.isnan(back[1].constraint_ratio)
 
 
 def test_loops_csv_without_the_newer_columns_is_still_read(tmp_path):
     # results folders written before tight_fitness and source existed
     path = tmp_path / "loops.csv"
     write_loops_csv(path, [])
-    header = ",".join(path.read_text().strip().split(",")[:-2])
-    path.write_text(header + "\ns,1,2,s,0,1,0.1,1,ok,0.9,0.3,0.7,1.0,2.0,0.5\n")
+    columns = path.read_text().strip().split(",")
+    path.write_text(",".join(columns[:-3]) + "\ns,1,2,s,0,1,0.1,1,ok,0.9,0.3,0.7,1.0,2.0,0.5\n")
     (loop,) = read_loops_csv(path)
     assert loop.accepted and loop.fitness == 0.9 and loop.source == "recognition"
     np.testing.assert_allclose(loop.candidate_from_query[:2, 3], [1.0, 2.0])
+    assert np.isnan(loop.constraint_ratio)
+    # ... and before constraint_ratio existed
+    row = "s,1,2,s,0,1,0.1,1,ok,0.9,0.3,0.7,1.0,2.0,0.5,0.2,proximity"
+    path.write_text(",".join(columns[:-1]) + "\n" + row + "\n")
+    (loop,) = read_loops_csv(path)
+    assert loop.tight_fitness == 0.2 and loop.source == "proximity"
+    assert np.isnan(loop.constraint_ratio)
 
 
 def test_loops_csv_errors(tmp_path):
@@ -64,7 +73,7 @@ def test_loops_csv_errors(tmp_path):
     with pytest.raises(DataError, match=r"loops\.csv:1: header"):
         read_loops_csv(path)
     write_loops_csv(path, [])
-    path.write_text(path.read_text() + "s,1,2,s,0,1,0.1,yes,ok,1,1,1,0,0,0,0.1,recognition\n")
+    path.write_text(path.read_text() + "s,1,2,s,0,1,0.1,yes,ok,1,1,1,0,0,0,0.1,recognition,0.9\n")
     with pytest.raises(DataError, match=r"loops\.csv:2: malformed"):
         read_loops_csv(path)
     with pytest.raises(DataError, match="does not exist"):

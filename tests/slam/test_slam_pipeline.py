@@ -187,6 +187,24 @@ def test_inconsistent_link_votes_are_rejected(reader):
     assert err.max() < 1.0
 
 
+def test_a_link_vote_slid_along_the_street_is_rejected(reader):
+    # A look-alike stretch of a straight street: 2.5 m off along it, the first vote would drag
+    # the session (and every proximity loop after the link) with it. Agreement is measured where
+    # the loops are, within link_consistency_m (1.5 m).
+    def accept(pipeline, q, c):
+        if not _is_link_pair(pipeline, q, c, 3):
+            return None
+        pose = _true_pose(pipeline, q, c)
+        return pose @ se2_to_matrix(2.5, 0.0, 0.0) if q.index == 0 else pose
+
+    res = _run_scripted(reader, accept)
+    rejected = [lp for lp in res.loops if lp.reason == "inconsistent with the session link"]
+    assert [lp.query.index for lp in rejected] == [0]
+    second = res.sessions[1]
+    err = np.linalg.norm(second.slam_poses[:, :2, 3] - second.gt_poses[:, :2, 3], axis=1)
+    assert err.max() < 0.5
+
+
 def test_a_single_vote_does_not_link(reader):
     def accept(pipeline, q, c):
         return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 0) else None
