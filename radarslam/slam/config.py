@@ -97,6 +97,18 @@ class LoopDetectionConfig(StrictModel):
     link_min_consistent_loops: int = Field(2, ge=1)
     link_consistency_m: float = Field(1.5, gt=0.0)
     link_consistency_deg: float = Field(10.0, gt=0.0)
+    #: Weak votes. A global registration between two groups that fails only the tight-fitness
+    #: or inlier-RMSE test, and by little (tight fitness >= ``weak_vote_min_tight_fitness``,
+    #: RMSE <= ``weak_vote_max_inlier_rmse_m``), is kept as a weak vote: a link also forms when
+    #: ``weak_link_min_votes`` votes agree, at least one of them a loop that passed every test.
+    #: Across days the tight fitness of right and wrong alignments overlaps at 0.10-0.12 (wrong
+    #: ones reach 0.109); a wrong one rarely agrees with three others. A weak vote must also be
+    #: well conditioned (``weak_vote_min_constraint_ratio``, see LoopVerifierConfig): along a
+    #: straight street look-alike stretches agree with each other. None: off.
+    weak_vote_min_tight_fitness: float | None = Field(0.10, ge=0.0, le=1.0)
+    weak_vote_max_inlier_rmse_m: float = Field(0.62, gt=0.0)
+    weak_vote_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
+    weak_link_min_votes: int = Field(4, ge=2)
 
 
 class SlamConfig(StrictModel):

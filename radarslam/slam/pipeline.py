@@ -152,6 +152,8 @@ class _PendingLoop:
 
     record: LoopCandidate
     information: np.ndarray
+    #: failed verification by a little (``loops.weak_vote_*``): counts only towards a weak link
+    weak: bool = False
 
 
 @dataclass
@@ -329,6 +331,9 @@ class SlamPipeline:
         if not any(s.key_frames for s in self.sessions.values()):
             raise DataError(f"no key frame with radar data in scene(s) {', '.join(names)}")
         for vote in self._votes:  # never confirmed by a consistent second loop
+            if vote.weak:  # rejected by verification all along
+                self.loops.append(vote.record)
+                continue
             self.loops.append(
                 replace(
                     vote.record,
@@ -701,6 +706,10 @@ class SlamPipeline:
                     reason=f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from the map's prediction",
                 )
         if not record.accepted:
+            if guess is None and cand_session.group != session.group and self._weak(record):
+                self._votes.append(_PendingLoop(record, ver.information, weak=True))
+                self._try_merge(session.group, cand_session.group)
+                return False
             self.loops.append(record)
             return False
         loop = _PendingLoop(record, ver.information)
@@ -715,6 +724,20 @@ class SlamPipeline:
             self._try_merge(session.group, cand_session.group)
         session.last_loop_kf = query.key.index
         return True
+
+    def _weak(self, record: LoopCandidate) -> bool:
+        """Whether a rejected global registration is a weak vote (``loops.weak_vote_*``)."""
+        cfg = self.config.loops
+        lv = self.config.backend.loop_verification
+        if cfg.weak_vote_min_tight_fitness is None:
+            return False
+        return bool(
+            record.fitness >= lv.min_fitness
+            and record.overlap >= lv.min_overlap
+            and record.inlier_rmse_m <= cfg.weak_vote_max_inlier_rmse_m
+            and record.tight_fitness >= cfg.weak_vote_min_tight_fitness
+            and record.constraint_ratio >= cfg.weak_vote_min_constraint_ratio
+        )
 
     def _add_loop(self, record: LoopCandidate, information: np.ndarray) -> None:
         self.graph.add_loop(
@@ -767,22 +790,38 @@ class SlamPipeline:
             dyaw = abs(_se2_distance(t_i, t_j)[1])
             return moved <= cfg.link_consistency_m and dyaw <= cfg.link_consistency_deg
 
+        def strength(agree: list[int]) -> tuple[int, int]:
+            return sum(not votes[j].weak for j in agree), len(agree)
+
         best: list[int] = []
         for i in range(len(votes)):
             agree = [j for j in range(len(votes)) if agree_on(i, j)]
-            if len(agree) > len(best):
+            if strength(agree) > strength(best):
                 best = agree
-        if len(best) < cfg.link_min_consistent_loops:
+        strong, total = strength(best)
+        weak_link = (
+            cfg.weak_vote_min_tight_fitness is not None
+            and strong >= 1
+            and total >= cfg.weak_link_min_votes
+        )
+        if strong < cfg.link_min_consistent_loops and not weak_link:
             return
         b_from_a = _se2_mean([placements[j] for j in best])  # each vote errs independently
         agreeing = {id(votes[j]) for j in best}
+        links = []
         for v in votes:
             self._votes.remove(v)
-            if id(v) not in agreeing:
+            if id(v) in agreeing:
+                if v.weak:  # loops.csv shows its tight fitness / RMSE past the thresholds
+                    v = replace(v, record=replace(v.record, accepted=True, reason="ok"))
+                links.append(v)
+            elif v.weak:
+                self.loops.append(v.record)
+            else:
                 self.loops.append(
                     replace(v.record, accepted=False, reason="inconsistent with the session link")
                 )
-        self._merge(a, b, b_from_a, [v for v in votes if id(v) in agreeing])
+        self._merge(a, b, b_from_a, links)
 
     def _merge(self, a: int, b: int, b_from_a: np.ndarray, links: list[_PendingLoop]) -> None:
         ga, gb = self.groups[a], self.groups[b]

@@ -84,7 +84,8 @@ def test_loop_search_logs_every_candidate_with_a_reason(reader, scenes, recogniz
 
 
 class _ScriptedVerifier:
-    """Accepts what ``accept(pipeline, query, candidate)`` returns a pose for."""
+    """Accepts what ``accept(pipeline, query, candidate)`` returns a pose for; a (pose, tight
+    fitness, constraint ratio) triple is a registration rejected by the tight-fitness test."""
 
     def __init__(self, pipeline, accept):
         self.pipeline = pipeline
@@ -92,10 +93,24 @@ class _ScriptedVerifier:
 
     def verify_candidate(self, query, candidate, tq, tc, distance, *_args):
         pose = self.accept(self.pipeline, query, candidate)
-        ok = pose is not None
+        tight, ratio = 0.2, 0.95
+        if isinstance(pose, tuple):
+            pose, tight, ratio = pose
+            ok, reason = False, f"tight_fitness {tight:.3f} < 0.12"
+        else:
+            ok = pose is not None
+            reason = "ok" if ok else "scripted reject"
         pose = np.eye(4) if pose is None else pose
         ver = LoopVerification(
-            ok, "ok" if ok else "scripted reject", pose, 1.0, 0.1, 1.0, np.diag([1e2, 1e2, 1e3])
+            ok,
+            reason,
+            pose,
+            1.0 if reason != "scripted reject" else 0.1,
+            0.1,
+            1.0,
+            np.diag([1e2, 1e2, 1e3]),
+            tight_fitness=tight,
+            constraint_ratio=ratio,
         )
         return LoopCandidate.from_verification(query, candidate, tq, tc, distance, ver), ver
 
@@ -203,6 +218,36 @@ def test_a_link_vote_slid_along_the_street_is_rejected(reader):
     second = res.sessions[1]
     err = np.linalg.norm(second.slam_poses[:, :2, 3] - second.gt_poses[:, :2, 3], axis=1)
     assert err.max() < 0.5
+
+
+@pytest.mark.parametrize(
+    ("weak", "overrides", "linked"),
+    [
+        ((0.11, 0.95), {}, True),  # 1 strong + 3 weak agreeing votes
+        ((0.11, 0.95), {"weak_vote_min_tight_fitness": None}, False),  # weak votes off
+        ((0.09, 0.95), {}, False),  # failed the tight test by too much
+        ((0.11, 0.70), {}, False),  # ill-conditioned: could slide along a street
+    ],
+)
+def test_weak_votes_link_a_session_only_when_enough_agree(reader, weak, overrides, linked):
+    def accept(pipeline, q, c):
+        if not _is_link_pair(pipeline, q, c, 3):
+            return None
+        pose = _true_pose(pipeline, q, c)
+        return pose if q.index == 0 else (pose, *weak)
+
+    pipeline = _scripted_pipeline(reader, accept, **overrides)
+    res = pipeline.run([s.name for s in reader.scenes()])
+    assert (len(res.components) == 1) is linked
+    links = sorted(
+        (lp for lp in res.loops if _is_link_pair(pipeline, lp.query, lp.candidate, 3)),
+        key=lambda lp: lp.query.index,
+    )
+    assert [lp.accepted for lp in links] == [linked] * 4
+    # loops.csv keeps its rule: the reason of every accepted loop is "ok", else what failed
+    assert all((lp.reason == "ok") == lp.accepted for lp in res.loops)
+    if linked:
+        assert [lp.tight_fitness for lp in links] == [0.2, 0.11, 0.11, 0.11]
 
 
 def test_a_single_vote_does_not_link(reader):
