@@ -39,8 +39,11 @@ import radarslam  # noqa: E402, F401  (sets the OpenMP wait policy before torch/
 
 
 def joint_ate(est: np.ndarray, gt: np.ndarray) -> float:
+    """SE(2)-aligned ATE RMSE; nan when there is nothing to align (e.g. no revisited poses)."""
     from radarslam.eval.metrics import ate
 
+    if len(est) < 2:
+        return float("nan")
     return float(ate(est, gt, align="se2").rmse_m)
 
 
