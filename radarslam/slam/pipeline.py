@@ -31,14 +31,16 @@ loop closure overlap, with identical results.
 Multi-session. Each scene is its own odometry chain and starts as its own *group*. Verified loops
 between two groups are votes on their relative placement; once ``link_min_consistent_loops`` votes
 agree (each vote's placement puts the others' loop key frames within ``link_consistency_m``), the
-groups merge (the other votes are rejected as false loops). The first session's group is the map: a
-group that merges into it enters the graph with its poses moved there (iSAM2 never sees a chain
-initialised kilometres away), together with the loops found inside it. Groups that never reach the
-map are added at the end on their own weak anchor and reported as separate components, not forced
-into the map. When two groups merge, the key frames processed before the link (which had no
-prediction then) are caught up by the proximity search against the other side. The merged placement
-is the mean of the agreeing votes: each vote errs on its own, and proximity ICP inherits the
-placement's error along a street, where the geometry barely constrains it.
+groups merge (the other votes are rejected as false loops). A global registration that failed the
+tight-fitness or RMSE test by a little, if well conditioned, is a weak vote: it counts only towards
+a link of ``weak_link_min_votes`` agreeing votes, one of them a full loop. The first session's
+group is the map: a group that merges into it enters the graph with its poses moved there (iSAM2
+never sees a chain initialised kilometres away), together with the loops found inside it. Groups
+that never reach the map are added at the end on their own weak anchor and reported as separate
+components, not forced into the map. When two groups merge, the key frames processed before the
+link (which had no prediction then) are caught up by the proximity search against the other side.
+The merged placement is the mean of the agreeing votes: each vote errs on its own, and proximity
+ICP inherits the placement's error along a street, where the geometry barely constrains it.
 """
 
 from __future__ import annotations
