@@ -222,6 +222,37 @@ class PreparedData:
     def __len__(self) -> int:
         return len(self.positions_xy)
 
+    @classmethod
+    def from_drives(
+        cls,
+        root: str | Path,
+        images: np.ndarray,
+        positions_xy: np.ndarray,
+        drive_names: np.ndarray,
+        seq_len: int = 3,
+        frame_interval_us: int = 500_000,
+    ) -> PreparedData:
+        """In-memory data of synthetic drives (heading 0, no RCS) whose names are their split:
+        ``db`` is the database, ``train`` / ``val`` / ``test`` the queries, each from its
+        ``seq_len``-th frame on (a query needs its past frames)."""
+        names = np.asarray(drive_names)
+        n = len(names)
+        splits = {"database": np.flatnonzero(names == "db")}
+        for split in ("train", "val", "test"):
+            splits[split] = np.flatnonzero(names == split)[seq_len - 1 :]
+        return cls(
+            root=Path(root),
+            images=np.stack(images),
+            positions_xy=np.asarray(positions_xy, dtype=float),
+            yaw_rad=np.zeros(n),
+            timestamps_us=np.arange(n, dtype=np.int64) * frame_interval_us,
+            scene_names=names,
+            sample_tokens=np.array([f"token{i}" for i in range(n)]),
+            rcs=[np.zeros(0, np.float32)] * n,
+            sequences=build_sequences(names, seq_len),
+            splits=splits,
+        )
+
     @property
     def num_channels(self) -> int:
         return 1 if self.images.ndim == 3 else self.images.shape[1]

@@ -34,7 +34,7 @@ def synthetic_corridor(
     seed: int = 0,
 ):
     """PreparedData of four drives along a corridor of random landmarks (see module doc)."""
-    from place_recognition.dataset import PreparedData, build_sequences
+    from place_recognition.dataset import PreparedData
 
     rng = np.random.default_rng(seed)
     half = size // 2
@@ -59,24 +59,7 @@ def synthetic_corridor(
             images.append(img)
             positions.append((x, y0))
             names.append(name)
-    names = np.array(names)
-    n = len(names)
-    splits = {}
-    for split, tag in (("database", "db"), ("train", "train"), ("val", "val"), ("test", "test")):
-        idx = np.flatnonzero(names == tag)
-        splits[split] = idx if split == "database" else idx[2:]
-    return PreparedData(
-        root=Path(f"synthetic-corridor-{n_db}x{size}px"),
-        images=np.stack(images),
-        positions_xy=np.array(positions, dtype=float),
-        yaw_rad=np.zeros(n),
-        timestamps_us=np.arange(n, dtype=np.int64) * 500_000,
-        scene_names=names,
-        sample_tokens=np.array([f"token{i}" for i in range(n)]),
-        rcs=[np.zeros(0, np.float32)] * n,
-        sequences=build_sequences(names, 3),
-        splits=splits,
-    )
+    return PreparedData.from_drives(f"synthetic-corridor-{n_db}x{size}px", images, positions, names)
 
 
 def throughput(args) -> dict:

@@ -1,11 +1,9 @@
 """Synthetic key-frame positions shared by the split and evaluation tests, and the tiny model
 configuration and learnable corridor data shared by the model, training and ablation tests."""
 
-from pathlib import Path
-
 import numpy as np
 
-from place_recognition.dataset import DAY_US, PreparedData, build_sequences
+from place_recognition.dataset import DAY_US, PreparedData
 from place_recognition.models import ModelConfig
 
 #: A 32x32, two-block SE+TE network: real code paths at test speed.
@@ -70,21 +68,4 @@ def corridor_data(seed: int = 0, n_db: int = 60, size: int = 32, step_m: float =
             images.append(img)
             positions.append((x, y0))
             names.append(name)
-    names = np.array(names)
-    n = len(names)
-    splits = {}
-    for split, tag in (("database", "db"), ("train", "train"), ("val", "val"), ("test", "test")):
-        idx = np.flatnonzero(names == tag)
-        splits[split] = idx if split == "database" else idx[2:]  # queries have two past frames
-    return PreparedData(
-        root=Path("synthetic-corridor"),
-        images=np.stack(images),
-        positions_xy=np.array(positions, dtype=float),
-        yaw_rad=np.zeros(n),
-        timestamps_us=np.arange(n, dtype=np.int64) * 500_000,
-        scene_names=names,
-        sample_tokens=np.array([f"token{i}" for i in range(n)]),
-        rcs=[np.zeros(0, np.float32)] * n,
-        sequences=build_sequences(names, 3),
-        splits=splits,
-    )
+    return PreparedData.from_drives("synthetic-corridor", images, positions, names)
