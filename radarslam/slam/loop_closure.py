@@ -53,6 +53,10 @@ class LoopVerifierConfig(StrictModel):
     voxel_size_m: float = Field(1.0, gt=0)
     min_points: int = Field(30, ge=3)
     heading_step_deg: float = Field(30.0, gt=0, le=360)
+    # Heading hypotheses span this window centred on the initial guess's heading (360: all
+    # round). A search that knows the relative heading roughly (a turned-image candidate: about
+    # 180 deg) tries fewer hypotheses: cheaper, and fewer chances to align a look-alike.
+    heading_range_deg: float = Field(360.0, gt=0, le=360)
     correlative_search: bool = True
     search_radius_m: float = Field(15.0, ge=0)
     grid_cell_m: float = Field(2.0, gt=0)
@@ -265,15 +269,19 @@ class LoopVerifier:
 
     def _hypotheses(self, q: np.ndarray, c: np.ndarray, guess: np.ndarray) -> list[_Hypothesis]:
         cfg = self.config
-        steps = max(1, round(360.0 / cfg.heading_step_deg))
         guess_yaw = math.atan2(guess[1, 0], guess[0, 0])
+        if cfg.heading_range_deg >= 360.0:
+            steps = max(1, round(360.0 / cfg.heading_step_deg))
+            offsets = [n * 360.0 / steps for n in range(steps)]
+        else:
+            half = int(cfg.heading_range_deg / 2 // cfg.heading_step_deg)
+            offsets = [n * cfg.heading_step_deg % 360.0 for n in range(-half, half + 1)]
         poses, headings = [], []
-        for n in range(steps):
-            dh = n * 360.0 / steps
+        for dh in offsets:
             yaw = guess_yaw + math.radians(dh)
             poses.append(se2_to_matrix(guess[0, 3], guess[1, 3], yaw))
             headings.append(dh if dh <= 180 else dh - 360)
-        scores = [0.0] * steps
+        scores = [0.0] * len(poses)
         grid = None
         if cfg.correlative_search and cfg.search_radius_m > 0:
             grid = _LikelihoodGrid(c, cfg.grid_cell_m)

@@ -58,10 +58,31 @@ from radarslam.errors import DataError
 from radarslam.geometry import invert, se2_to_matrix, wrap_angle
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.records import LoopCandidate, NodeKey
-from radarslam.types import SceneInfo
+from radarslam.types import AccumulatedCloud, SceneInfo
 
 #: Odometry covariance (x, y, yaw) used where the odometry chain broke (a long gap in the data).
 _BROKEN_CHAIN_SIGMAS = np.array([10.0, 10.0, 0.5])
+
+
+#: A half turn about the z axis.
+_HALF_TURN = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def turned_cloud(cloud: AccumulatedCloud) -> AccumulatedCloud:
+    """The cloud turned by 180 deg about its reference sensor: roughly what the sensor sees of
+    the same place when the street is driven the other way round (the far field, which only the
+    forward radar reaches, stays on the wrong side). Its sample token gets a ``#turned`` suffix
+    so that a recognizer's per-token feature cache keeps the two apart."""
+    points = cloud.points.copy()
+    for name in ("x", "y", "vx", "vy", "vx_comp", "vy_comp"):
+        if name in points.dtype.names:
+            points[name] = -points[name]
+    return replace(
+        cloud,
+        points=points,
+        world_from_ref=cloud.world_from_ref @ _HALF_TURN,
+        sample_token=f"{cloud.sample_token}#turned" if cloud.sample_token else "",
+    )
 
 
 @dataclass
@@ -286,6 +307,16 @@ class SlamPipeline:
                     "max_range_m": cfg.loops.proximity_max_range_m,
                     "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
                     "icp_relative_tolerance": cfg.loops.proximity_icp_relative_tolerance,
+                }
+            )
+        )
+        # Turned-image candidates come with a rough relative heading (half a turn) but no
+        # position: the global translation search, over headings near 180 deg only.
+        self.reversed_verifier = LoopVerifier(
+            cfg.backend.loop_verification.model_copy(
+                update={
+                    "heading_range_deg": cfg.loops.reversed_heading_range_deg,
+                    "refine_top_k": 1,
                 }
             )
         )
@@ -543,12 +574,51 @@ class SlamPipeline:
                     break
                 budget -= 1
             closed |= self._verify(session, kf, self._kf_by_key[cand.key], cand.descriptor_distance)
+        recognition_s = self.timings.place_recognition_s
+        if not closed and cfg.reversed_search:
+            closed |= self._reversed_search(session, kf, cloud)
         if self.scancontext is not None:  # every key frame goes into its database
             closed |= self._scancontext_search(session, kf, search=not closed)
         if not closed:
             for other in self._proximity_candidates(session, kf):
                 self._verify(session, kf, other, float("nan"), self.proximity_verifier)
-        self.timings.verification_s += time.perf_counter() - t1
+        # the reversed and ScanContext searches book their descriptor time themselves
+        recognition_s = self.timings.place_recognition_s - recognition_s
+        self.timings.verification_s += time.perf_counter() - t1 - recognition_s
+
+    def _reversed_search(self, session: _Session, kf: KeyFrame, cloud) -> bool:
+        """For a session outside the map: AutoPlace queried with the key frame's image sequence
+        turned by 180 deg, i.e. as the street looks driven the other way round, against the
+        map's key frames; the best match is verified by the translation search over headings
+        near 180 deg (see ``loops.reversed_search``)."""
+        cfg = self.config.loops
+        if (
+            self.groups[session.group].in_map
+            or kf.key.index < self.config.key_frames.local_map_neighbors
+            or kf.key.index % cfg.reversed_every
+            or kf.key.index - session.last_loop_kf <= cfg.min_key_frames_between_loops
+        ):
+            return False
+        t0 = time.perf_counter()
+        n = self.recognizer.seq_len
+        sequence = [*(self._cloud_of(k) for k in session.key_frames[-n:-1]), cloud]
+        desc, rcs = self.recognizer.describe([turned_cloud(c) for c in sequence])
+        candidates = self.recognizer.query_descriptor(
+            desc, rcs, k=1, exclude=lambda key: not self.sessions[key.session].inserted
+        )
+        self.timings.place_recognition_s += time.perf_counter() - t0
+        closed = False
+        for cand in candidates:
+            closed |= self._verify(
+                session,
+                kf,
+                self._kf_by_key[cand.key],
+                cand.descriptor_distance,
+                self.reversed_verifier,
+                source="reversed",
+                hint=_HALF_TURN,
+            )
+        return closed
 
     def _scancontext_search(self, session: _Session, kf: KeyFrame, search: bool) -> bool:
         """For a session outside the map: the best rotation-invariant candidate among the other
@@ -622,8 +692,6 @@ class SlamPipeline:
         return self.recognizer.describe([*past, cloud])
 
     def _cloud_of(self, kf: KeyFrame):
-        from radarslam.types import AccumulatedCloud
-
         return AccumulatedCloud(
             points=kf.cloud_points,
             world_from_ref=kf.odometry_pose @ kf.ego_from_ref,
@@ -678,8 +746,10 @@ class SlamPipeline:
         distance: float,
         verifier=None,
         source: str | None = None,
+        hint: np.ndarray | None = None,
     ) -> bool:
-        """Verify one candidate; True when it was accepted (into the graph, a group or a vote)."""
+        """Verify one candidate; True when it was accepted (into the graph, a group or a vote).
+        ``hint``: where the search starts when neither odometry nor the map predicts the pose."""
         guess = self._guess(query, cand)
         if source is None:
             source = "recognition" if verifier is None else "proximity"
@@ -693,7 +763,7 @@ class SlamPipeline:
             distance,
             self._local_map(query, past_only=True),
             self._local_map(cand, past_only=False),
-            guess,
+            guess if guess is not None else hint,
         )
         record = replace(record, source=source)
         cand_session = self.sessions[cand.key.session]

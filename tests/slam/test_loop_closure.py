@@ -79,6 +79,23 @@ def test_initial_guess_suffices_without_search():
     assert res.accepted and _pose_error(res.candidate_from_query, true)[0] < 0.15
 
 
+@pytest.mark.parametrize(
+    ("q_yaw_deg", "found"),
+    [(183.0, True), (205.0, True), (97.0, False), (0.0, False)],
+)
+def test_heading_window_tries_only_headings_near_the_hint(q_yaw_deg, found):
+    # A turned-image candidate: a half turn is the hint, +-30 deg the window (3 hypotheses).
+    q_from_place = se2_to_matrix(-6.0, 5.0, np.deg2rad(q_yaw_deg))
+    query, cand, true = _revisit(3, q_from_place)
+    v = LoopVerifier(LoopVerifierConfig(heading_range_deg=60.0))
+    every = LoopVerifier(LoopVerifierConfig(heading_range_deg=60.0, refine_top_k=10))
+    hyps = every._hypotheses(query, cand, np.eye(4))
+    assert sorted(h.heading_deg for h in hyps) == [-30.0, 0.0, 30.0]
+    res = v.verify(query, cand, se2_to_matrix(0.0, 0.0, np.pi))
+    assert (res.accepted and _pose_error(res.candidate_from_query, true)[0] < 0.15) == found
+    assert LoopVerifier().verify(query, cand).accepted  # all round, every case is found
+
+
 def test_small_gicp_backend_agrees():
     query, cand, true = _revisit(5, se2_to_matrix(-2.0, 3.0, np.deg2rad(178.0)))
     v = LoopVerifier(LoopVerifierConfig(backend="small_gicp")).verify(query, cand)

@@ -463,3 +463,61 @@ def test_scancontext_candidates_search_only_sessions_outside_the_map(reader, sce
         assert lp.reason and (lp.reason == "ok") == lp.accepted
     # every key frame of the run is in the database, whether it searched or not
     assert len(pipeline.scancontext) == res.timings.key_frames
+
+
+def test_reversed_search_queries_turned_images_of_sessions_outside_the_map(
+    reader, scenes, recognizer
+):
+    cfg = SlamConfig()
+    cfg.loops.reversed_every = 2
+    rec = recognizer()
+    turned_tokens = []
+    describe = rec.describe
+
+    def spy(clouds):
+        turned_tokens.extend(c.sample_token for c in clouds if c.sample_token.endswith("#turned"))
+        return describe(clouds)
+
+    rec.describe = spy
+    res = SlamPipeline(reader, cfg, recognizer=rec, progress=False).run(scenes)
+    first, second = scenes
+    searched = [lp for lp in res.loops if lp.source == "reversed"]
+    assert searched, "the second session starts outside the map and searches"
+    assert turned_tokens
+    for lp in searched:
+        # only a session outside the map searches, and only the map's key frames are candidates
+        assert lp.query.session == second and lp.candidate.session == first
+        assert lp.query.index >= cfg.key_frames.local_map_neighbors
+        assert lp.query.index % 2 == 0
+        assert lp.reason and (lp.reason == "ok") == lp.accepted
+
+
+def test_reversed_search_can_be_switched_off(reader, scenes, recognizer):
+    cfg = SlamConfig()
+    cfg.loops.reversed_search = False
+    res = SlamPipeline(reader, cfg, recognizer=recognizer(), progress=False).run(scenes)
+    assert not [lp for lp in res.loops if lp.source == "reversed"]
+
+
+def test_turned_cloud_is_the_same_world_seen_half_a_turn_round():
+    from radarslam.slam.pipeline import turned_cloud
+    from radarslam.types import ACCUMULATED_DTYPE, AccumulatedCloud
+
+    rng = np.random.default_rng(0)
+    pts = np.zeros(5, dtype=ACCUMULATED_DTYPE)
+    for name in ("x", "y", "vx", "vy", "vx_comp", "vy_comp", "rcs"):
+        pts[name] = rng.normal(size=5)
+    pose = se2_to_matrix(10.0, -3.0, 0.4)
+    cloud = AccumulatedCloud(pts, pose, "RADAR_FRONT", 123, "tok")
+    out = turned_cloud(cloud)
+    assert out.sample_token == "tok#turned" and cloud.sample_token == "tok"
+    for name in ("x", "y", "vx", "vy", "vx_comp", "vy_comp"):
+        assert np.array_equal(out.points[name], -pts[name])
+    assert np.array_equal(out.points["rcs"], pts["rcs"])
+
+    def world(c):
+        xy = np.column_stack([c.points["x"], c.points["y"], np.zeros(5), np.ones(5)])
+        return (c.world_from_ref @ xy.T).T[:, :2]
+
+    assert np.allclose(world(out), world(cloud))
+    assert turned_cloud(AccumulatedCloud(pts, pose, "RADAR_FRONT", 123)).sample_token == ""
