@@ -81,16 +81,26 @@ class LoopDetectionConfig(StrictModel):
     #: default: on the demo it links the reversed drive (recall 0.84 -> 1.00, 128 of 128 loops
     #: correct) but costs 11.9x -> 8.8x real time; on the long-scene benchmark it links nothing
     #: more and costs 11.2x -> 7.8x (docs/results.md).
-    #: Turned AutoPlace candidates for sessions outside the map: the key frame's image sequence
-    #: turned by 180 deg about the radar is queried against the other groups' key frames, and
-    #: the best match goes to the global registration search over headings (verification and
-    #: linking as for any candidate). AutoPlace's own query never proposes a street driven the
-    #: other way round; turned, its best match is a true revisit for 12 % of reversed key frames
-    #: (1 % unturned) on the seed-33 city, and the verifier accepts 21 of 296 such candidates,
-    #: all correct. Every ``reversed_every``-th key frame, only while the session is outside the
-    #: map and the key frame closed nothing else. False: off.
+    #: Turned AutoPlace candidates, for streets a session drives the other way round from the
+    #: map. AutoPlace's image is drawn in the vehicle's frame, so its own query never proposes
+    #: them: on the seed-33 city its best match is such a revisit for 1 % of reversed key frames,
+    #: and for 12 % with the image sequence turned by 180 deg about the radar (the far field,
+    #: which only the forward radar reaches, stays on the wrong side). Every
+    #: ``reversed_every``-th key frame of a session outside the map that closed nothing else
+    #: queries the map's key frames with its turned sequence; the best match goes to the
+    #: translation search over headings within ``reversed_heading_range_deg`` of a half turn
+    #: (one ICP refinement), then to the usual tests and session linking. Seed 33: recall 0.628
+    #: -> 0.797, 4 instead of 1 sessions in the map, all 814 loops correct; demo 0.84 -> 1.00;
+    #: the long-scene benchmark links nothing more. Every 6th key frame: every 8th left the
+    #: demo's reversed drive unlinked, every 4th cost the benchmark more time (docs/results.md).
+    #: False: off.
     reversed_search: bool = True
-    reversed_every: int = Field(4, ge=1)
+    reversed_every: int = Field(6, ge=1)
+    #: After this many reversed searches of a session without an accepted loop its interval
+    #: doubles, and after twice as many doubles again (at most 4x): a session that has not met
+    #: the map the other way round for a while is likely elsewhere, and each search costs a
+    #: turned image sequence and a registration (about 0.2 s here). None: a fixed interval.
+    reversed_backoff_searches: int | None = Field(8, ge=1)
     reversed_heading_range_deg: float = Field(60.0, gt=0, le=360)
     scancontext_search: bool = False
     scancontext_every: int = Field(2, ge=1)

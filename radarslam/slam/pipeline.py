@@ -199,6 +199,8 @@ class _Session:
     inserted: bool = False
     world_from_session: np.ndarray | None = None  # where the chain was put in the map
     last_loop_kf: int = -(10**9)
+    last_reversed_kf: int = -(10**9)  # the last key frame that ran the reversed search
+    reversed_misses: int = 0  # reversed searches since the last accepted one
     timestamps_us: list[int] = field(default_factory=list)  # of the key frames, increasing
     _xy: np.ndarray = field(default_factory=lambda: np.zeros((64, 2)))  # grows by doubling
 
@@ -592,13 +594,17 @@ class SlamPipeline:
         map's key frames; the best match is verified by the translation search over headings
         near 180 deg (see ``loops.reversed_search``)."""
         cfg = self.config.loops
+        interval = cfg.reversed_every
+        if cfg.reversed_backoff_searches is not None:
+            interval <<= min(session.reversed_misses // cfg.reversed_backoff_searches, 2)
         if (
             self.groups[session.group].in_map
             or kf.key.index < self.config.key_frames.local_map_neighbors
-            or kf.key.index % cfg.reversed_every
+            or kf.key.index - session.last_reversed_kf < interval
             or kf.key.index - session.last_loop_kf <= cfg.min_key_frames_between_loops
         ):
             return False
+        session.last_reversed_kf = kf.key.index
         t0 = time.perf_counter()
         n = self.recognizer.seq_len
         sequence = [*(self._cloud_of(k) for k in session.key_frames[-n:-1]), cloud]
@@ -618,6 +624,7 @@ class SlamPipeline:
                 source="reversed",
                 hint=_HALF_TURN,
             )
+        session.reversed_misses = 0 if closed else session.reversed_misses + 1
         return closed
 
     def _scancontext_search(self, session: _Session, kf: KeyFrame, search: bool) -> bool:
