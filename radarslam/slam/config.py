@@ -73,14 +73,6 @@ class LoopDetectionConfig(StrictModel):
     #: A session not yet in the map verifies at most this many candidates per key frame (each
     #: needs the costly global search over headings and translations).
     unlinked_candidates_per_key_frame: int = Field(1, ge=1)
-    #: Rotation-invariant candidates (ScanContext, radarslam.slam.scancontext_candidates) for
-    #: key frames of sessions outside the map that AutoPlace did not close: they can find streets
-    #: the map drove the other way round, which AutoPlace's heading-bound image does not.
-    #: Every ``scancontext_every``-th key frame (each search costs a global registration, ~80 ms),
-    #: from the ``local_map_neighbors``-th on (the query's local map must be whole). Off by
-    #: default: on the demo it links the reversed drive (recall 0.84 -> 1.00, 128 of 128 loops
-    #: correct) but costs 11.9x -> 8.8x real time; on the long-scene benchmark it links nothing
-    #: more and costs 11.2x -> 7.8x (docs/results.md).
     #: Turned AutoPlace candidates, for streets a session drives the other way round from the
     #: map. AutoPlace's image is drawn in the vehicle's frame, so its own query never proposes
     #: them: on the seed-33 city its best match is such a revisit for 1 % of reversed key frames,
@@ -91,8 +83,9 @@ class LoopDetectionConfig(StrictModel):
     #: translation search over headings within ``reversed_heading_range_deg`` of a half turn
     #: (one ICP refinement), then to the usual tests and session linking. Seed 33: recall 0.628
     #: -> 0.797, 4 instead of 1 sessions in the map, all 814 loops correct; demo 0.84 -> 1.00;
-    #: the long-scene benchmark links nothing more. Every 6th key frame: every 8th left the
-    #: demo's reversed drive unlinked, every 4th cost the benchmark more time (docs/results.md).
+    #: the long-scene benchmark links nothing more. Every 6th key frame (then the backoff
+    #: below): every 8th left the demo's reversed drive unlinked, every 4th cost the benchmark
+    #: more time (docs/results.md).
     #: False: off.
     reversed_search: bool = True
     reversed_every: int = Field(6, ge=1)
@@ -102,6 +95,16 @@ class LoopDetectionConfig(StrictModel):
     #: turned image sequence and a registration (about 0.2 s here). None: a fixed interval.
     reversed_backoff_searches: int | None = Field(8, ge=1)
     reversed_heading_range_deg: float = Field(60.0, gt=0, le=360)
+    #: Rotation-invariant candidates (ScanContext, radarslam.slam.scancontext_candidates) for
+    #: key frames of sessions outside the map that AutoPlace did not close: they can find streets
+    #: the map drove the other way round, which AutoPlace's heading-bound image does not.
+    #: Every ``scancontext_every``-th key frame (each search costs a global registration, ~80 ms),
+    #: from the ``local_map_neighbors``-th on (the query's local map must be whole). Off by
+    #: default: on the demo it links the reversed drive (recall 0.84 -> 1.00, 128 of 128 loops
+    #: correct) but costs 11.9x -> 8.8x real time; on the long-scene benchmark it links nothing
+    #: more and costs 11.2x -> 7.8x (docs/results.md). The turned AutoPlace search does better
+    #: for less: on seed 33 ScanContext's best match is a true reversed revisit about as often
+    #: as chance (0-5 % of key frames, turned AutoPlace 12 %).
     scancontext_search: bool = False
     scancontext_every: int = Field(2, ge=1)
     #: Ring-key nearest neighbours re-ranked by the column-shift distance.
