@@ -490,11 +490,12 @@ def test_reversed_search_queries_turned_images_of_sessions_outside_the_map(
     searched.sort(key=lambda lp: lp.query.index)
     # Both sessions drive one way: no turned match verifies (pinned), so every search is a miss.
     assert not any(lp.accepted or "link" in lp.reason for lp in searched)
-    for misses, (prev, lp) in enumerate(pairwise(searched)):
+    for lp in searched:
         # only a session outside the map searches, and only the map's key frames are candidates
         assert lp.query.session == second and lp.candidate.session == first
-        assert prev.query.index >= cfg.key_frames.local_map_neighbors
+        assert lp.query.index >= cfg.key_frames.local_map_neighbors
         assert lp.reason
+    for misses, (prev, lp) in enumerate(pairwise(searched)):
         # every 2nd key frame, every 4th after 3 misses, every 8th after 6
         assert lp.query.index - prev.query.index >= 2 << min((misses + 1) // 3, 2)
 
