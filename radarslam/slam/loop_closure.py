@@ -4,8 +4,9 @@ Radar local maps are sparse and places are often revisited in the opposite direc
 from one initial guess is not enough. :class:`LoopVerifier` therefore
 
 1. voxel-downsamples both (N, 2) maps;
-2. tries heading hypotheses every ``heading_step_deg`` around the initial guess (the default 15
-   includes 0, +-90 and 180 deg); for each, a coarse 2-D correlative search over translation
+2. tries heading hypotheses every ``heading_step_deg`` around the initial guess (the default 30
+   includes 0, +-90 and 180 deg), all round or within ``heading_range_deg`` of the guess's
+   heading; for each, a coarse 2-D correlative search over translation
    (FFT cross-correlation of the rotated query's occupancy with the candidate's blurred occupancy,
    within ``search_radius_m``) places the query;
 3. refines the ``refine_top_k`` best hypotheses by ICP (coarse then fine correspondence distance;

@@ -16,15 +16,19 @@
    d. **verification** of each candidate by registering the two key frames' local maps
       (:class:`~radarslam.slam.loop_closure.LoopVerifier`); every candidate, accepted or not, is
       logged with the reason;
-   e. **proximity search** when recognition closed nothing: once the key frame's session is
+   e. **reversed search**, for a session outside the map when recognition closed nothing: every
+      ``reversed_every``-th key frame (less often after repeated misses) queries AutoPlace with
+      its images turned by 180 deg against the map's key frames, and the best match is verified
+      over headings near a half turn: how a street driven the other way round is found;
+   f. **proximity search** when nothing else closed the key frame: once the key frame's session is
       linked to others (or revisits its own past), the nearest key frame of its group within
       ``proximity_radius_m`` of the predicted pose is registered from that prediction (ICP only).
       Recognition links sessions; proximity then closes a loop at nearly every revisiting key
       frame, which is what pulls the whole session onto the map;
-   f. accepted loops become robust factors; iSAM2 receives only the new factors and values.
+   g. accepted loops become robust factors; iSAM2 receives only the new factors and values.
 3. A final batch Levenberg-Marquardt, the static map, and the results folder.
 
-Step 1 (and the key-frame clouds) never depends on steps 2b-2f, so with ``pipelined`` (default)
+Step 1 (and the key-frame clouds) never depends on steps 2b-2g, so with ``pipelined`` (default)
 it runs in a forked process that streams key-frame clouds to this one: on two cores odometry and
 loop closure overlap, with identical results.
 
