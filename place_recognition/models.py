@@ -181,6 +181,32 @@ class AutoPlaceNet(nn.Module):
             out = out[:, -1]
         return F.normalize(out, p=2, dim=1)
 
+    def frame_codes(self, feats: torch.Tensor) -> torch.Tensor:
+        """(N, F) per-frame features -> (N, K) the part of :meth:`aggregate` that each frame
+        contributes on its own: the LSTM's input projection with both biases (K = 4 x hidden,
+        gates in torch's i, f, g, o order); SE: the features unchanged. A recognizer caches these
+        per frame: a frame enters ``seq_len`` consecutive sequences, and the projection (a
+        2304 x 1024 matrix for the compact model) is most of the LSTM's cost."""
+        if self.lstm is None:
+            return feats
+        lstm = self.lstm
+        return F.linear(feats, lstm.weight_ih_l0, lstm.bias_ih_l0 + lstm.bias_hh_l0)
+
+    def aggregate_codes(self, codes: torch.Tensor) -> torch.Tensor:
+        """(B, L, K) per-frame codes (:meth:`frame_codes`), oldest first -> (B, D) unit
+        descriptors; equal to :meth:`aggregate` of the features up to float rounding (the same
+        single-layer LSTM recurrence, zero initial state, written out for inference)."""
+        if self.lstm is None:
+            return F.normalize(codes[:, -1], p=2, dim=1)
+        w_hh = self.lstm.weight_hh_l0
+        h = codes.new_zeros(codes.shape[0], w_hh.shape[1])
+        c = torch.zeros_like(h)
+        for t in range(codes.shape[1]):
+            i, f, g, o = (codes[:, t] + h @ w_hh.T).chunk(4, dim=1)
+            c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+            h = torch.sigmoid(o) * torch.tanh(c)
+        return F.normalize(h, p=2, dim=1)
+
     def forward(self, x: torch.Tensor, seq_index: torch.Tensor | None = None) -> torch.Tensor:
         seq_len = self.cfg.seq_len
         if seq_index is None:

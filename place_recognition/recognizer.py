@@ -93,11 +93,14 @@ class PlaceRecognizer:
         self._hists: list[np.ndarray] = []
         self._rcs: list[np.ndarray] = []
         self._index: DescriptorIndex | None = None
-        # Per-frame features of the most recent clouds: in a SLAM loop each key frame enters
-        # seq_len consecutive sequences and only its first use needs the CNN.
+        # Per-frame codes (the CNN features through the LSTM's input projection) of the most
+        # recent clouds: in a SLAM loop each key frame enters seq_len consecutive sequences and
+        # only its first use needs the CNN and the projection.
         self._feature_cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self._cache_size = 4 * self.seq_len
-        self._split_model = hasattr(model, "encode_frames") and hasattr(model, "aggregate")
+        self._split_model = all(
+            hasattr(model, name) for name in ("encode_frames", "frame_codes", "aggregate_codes")
+        )
 
     # ---- inputs ------------------------------------------------------------------------------
     def cloud_from_reader(self, reader, sample_token: str) -> AccumulatedCloud:
@@ -184,14 +187,15 @@ class PlaceRecognizer:
         import torch
 
         with torch.no_grad():
-            out = self.model.encode_frames(torch.from_numpy(images).to(self.config.device))
+            feats = self.model.encode_frames(torch.from_numpy(images).to(self.config.device))
+            out = self.model.frame_codes(feats)
         return out.detach().float().cpu().numpy()
 
-    def _aggregate(self, feats: np.ndarray) -> np.ndarray:
+    def _aggregate(self, codes: np.ndarray) -> np.ndarray:
         import torch
 
         with torch.no_grad():
-            out = self.model.aggregate(torch.from_numpy(feats).to(self.config.device))
+            out = self.model.aggregate_codes(torch.from_numpy(codes).to(self.config.device))
         out = out.detach().float().cpu().numpy()
         if out.ndim != 2 or not np.all(np.isfinite(out)):
             raise CheckpointError(f"model returned {out.shape} (non-finite or wrong shape)")

@@ -129,6 +129,30 @@ def test_imagenet_normalisation_replicates_one_channel():
     assert torch.isfinite(feats).all() and feats.abs().sum() > 0
 
 
+@pytest.mark.parametrize("temporal", [True, False])
+def test_frame_codes_then_aggregate_codes_equal_aggregate(temporal):
+    """The inference split (per-frame LSTM input projection, then the recurrence written out)
+    gives the nn.LSTM descriptor; and a sequence's codes do not depend on its other frames."""
+    cfg = TINY
+    if not temporal:
+        cfg = TINY.model_copy(update={"use_temporal": False, "seq_len": 1, "descriptor_dim": None})
+    torch.manual_seed(0)
+    model = build_model(ModelConfig.model_validate(cfg.model_dump())).eval()
+    for p in model.parameters():  # trained weights are not small: exercise the gates' range
+        p.data.mul_(3.0)
+    frames = _occupancy((4 * cfg.seq_len, 1, 32, 32), seed=5)
+    with torch.no_grad():
+        feats = model.encode_frames(frames).view(4, cfg.seq_len, -1)
+        codes = model.frame_codes(feats.flatten(0, 1)).view(4, cfg.seq_len, -1)
+        got = model.aggregate_codes(codes)
+        want = model.aggregate(feats)
+        assert torch.allclose(got, want, atol=1e-5)
+        assert not torch.allclose(got[0], got[1])
+        single = model.frame_codes(feats[2, -1:])
+    assert torch.allclose(single[0], codes[2, -1], atol=1e-5)
+    assert codes.shape[-1] == (4 * cfg.descriptor_dim if temporal else feats.shape[-1])
+
+
 def test_bad_inputs_raise_one_line_errors():
     model = build_model(TINY)
     with pytest.raises(ValueError, match="needs 3"):

@@ -89,8 +89,8 @@ def test_temporal_padding(clouds):
 
 
 def test_frame_feature_cache_matches_full_model(clouds):
-    """With a split model (encode_frames + aggregate), cached per-frame features give the same
-    descriptor as the model's forward on the whole sequence."""
+    """With a split model (encode_frames + frame_codes + aggregate_codes), cached per-frame
+    codes give the descriptor of the model's forward on the whole sequence."""
     from place_recognition.models import build_model, load_model_config
 
     torch.manual_seed(0)
