@@ -9,7 +9,9 @@ not from the reference code:
   paper widths (64-128-256-256) and a 200x200 input this is 256x6x6 = 9216-D.
 - TE: each frame of the sequence (t-L+1 .. t, oldest first) goes through the SE trunk; the pooled
   map is L2-normalised per position again, flattened, and fed to a one-layer unidirectional LSTM
-  (zero initial state). The last time step's output, L2-normalised, is the descriptor.
+  (zero initial state). The last time step's output, L2-normalised, is the descriptor. For
+  inference the LSTM splits into a per-frame input projection (``frame_codes``, cached by the
+  recognizer: a frame enters ``seq_len`` sequences) and the recurrence (``aggregate_codes``).
 
 The input normalisation lives inside the model so that callers pass raw occupancy in [0, 1]:
 the reference replicated the binary image into 3 channels and applied the ImageNet mean/std, and
