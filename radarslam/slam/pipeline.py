@@ -610,8 +610,7 @@ class SlamPipeline:
             return False
         session.last_reversed_kf = kf.key.index
         t0 = time.perf_counter()
-        n = self.recognizer.seq_len
-        sequence = [*(self._cloud_of(k) for k in session.key_frames[-n:-1]), cloud]
+        sequence = self._sequence(session, cloud)
         desc, rcs = self.recognizer.describe([turned_cloud(c) for c in sequence])
         candidates = self.recognizer.query_descriptor(
             desc, rcs, k=1, exclude=lambda key: not self.sessions[key.session].inserted
@@ -698,9 +697,13 @@ class SlamPipeline:
     def _describe(self, session: _Session, kf: KeyFrame, cloud) -> tuple[np.ndarray, np.ndarray]:
         """The key frame's AutoPlace descriptor over (t-2, t-1, t); the recognizer encodes each
         key frame's image once (its feature cache is keyed by sample token)."""
+        return self.recognizer.describe(self._sequence(session, cloud))
+
+    def _sequence(self, session: _Session, cloud) -> list[AccumulatedCloud]:
+        """The clouds of AutoPlace's sequence ending at the session's newest key frame, whose
+        cloud is ``cloud``: its ``seq_len - 1`` predecessors, oldest first, then ``cloud``."""
         n = self.recognizer.seq_len
-        past = [self._cloud_of(k) for k in session.key_frames[-n:-1]]
-        return self.recognizer.describe([*past, cloud])
+        return [*(self._cloud_of(k) for k in session.key_frames[-n:-1]), cloud]
 
     def _cloud_of(self, kf: KeyFrame):
         return AccumulatedCloud(
