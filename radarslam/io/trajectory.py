@@ -84,6 +84,8 @@ def _data_lines(path: Path):
         text = path.read_text()
     except UnicodeDecodeError:
         raise DataError(f"{path}: not a text trajectory file") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read the trajectory file ({exc.strerror})") from None
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
@@ -103,10 +105,13 @@ def _floats(path: Path, lineno: int, tokens: list[str], start: int = 0) -> list[
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM file -> (timestamps_us (N,) int64, poses (N, 4, 4) float64)."""
+    """Read a TUM file -> (timestamps_us (N,) int64, poses (N, 4, 4) float64).
+
+    Timestamps must be strictly increasing (:class:`DataError` naming the line otherwise)."""
     path = Path(path)
     stamps: list[int] = []
     poses: list[np.ndarray] = []
+    prev_lineno = 0
     for lineno, tokens in _data_lines(path):
         if len(tokens) != 8:
             raise DataError(
@@ -117,6 +122,13 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             stamps.append(_seconds_text_to_us(tokens[0]))
         except (InvalidOperation, ValueError):
             raise DataError(f"{path}:{lineno}: bad timestamp {tokens[0]!r}") from None
+        if len(stamps) > 1 and stamps[-1] <= stamps[-2]:
+            what = "repeats" if stamps[-1] == stamps[-2] else "is earlier than"
+            raise DataError(
+                f"{path}:{lineno}: timestamp {tokens[0]} {what} the previous one (line "
+                f"{prev_lineno}); timestamps must be strictly increasing"
+            )
+        prev_lineno = lineno
         tx, ty, tz, qx, qy, qz, qw = _floats(path, lineno, tokens, 1)
         if qx * qx + qy * qy + qz * qz + qw * qw < 1e-12:
             raise DataError(f"{path}:{lineno}: zero-norm quaternion")

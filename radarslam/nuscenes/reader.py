@@ -6,7 +6,9 @@
 
 Documented skips (never errors): points with a NaN/inf field are dropped, and a sweep with no
 (finite) point is returned as a :class:`RadarSweep` with 0 points. Both are counted in
-``reader.skip_counts`` and logged once per scene (logger ``radarslam.nuscenes``).
+``reader.skip_counts`` and logged once per scene (logger ``radarslam.nuscenes``). The exception:
+:meth:`NuScenesRadar.iter_frames` raises :class:`DataError` at the end of a scene whose every
+sweep it read was empty (a scene without a single radar point is broken data, not a gap).
 """
 
 from __future__ import annotations
@@ -141,6 +143,7 @@ class NuScenesRadar:
         self._scene_infos: list[SceneInfo] | None = None
         self._reported: set[str] = set()
         self._skipped_rows: set[int] = set()
+        self._empty_rows: set[int] = set()  # sweeps with no (finite) point, before filtering
 
     # ---- scenes ------------------------------------------------------------------------------
     def scenes(self) -> list[SceneInfo]:
@@ -292,6 +295,8 @@ class NuScenesRadar:
                 nan_dropped = int((~finite).sum())
                 points = points[finite]
                 empty = len(points) == 0
+        if empty:
+            self._empty_rows.add(row)
         if (nan_dropped or empty) and row not in self._skipped_rows:
             self._skipped_rows.add(row)  # counted once per sweep, however often it is read
             if scene_name is None:
@@ -483,13 +488,17 @@ class NuScenesRadar:
         channel's key-frame sample_data, anchored on the reference channel's (or, if absent, the
         first channel present in ``RADAR_CHANNELS`` order); samples without any radar key frame
         are skipped.
+
+        Empty sweeps are yielded (and counted in ``skip_counts``), but when every sweep of the
+        scene's frames was empty, :class:`DataError` is raised after the last frame.
         """
         info = self.scene(scene)
         before = dict(self.skip_counts.per_scene.get(info.name, {})) or None
         if key_frames_only:
             yield from self._iter_key_frames(info, ref_channel, filters)
         else:
-            for group in self._group_rows(info, ref_channel, sync_tolerance_us):
+            groups = self._group_rows(info, ref_channel, sync_tolerance_us)
+            for group in groups:
                 sweeps = [self._sweep(r, filters, info.name) for _, r in group]
                 anchor = sweeps[0]
                 yield RadarFrame(
@@ -502,6 +511,14 @@ class NuScenesRadar:
                     scene_name=info.name,
                     is_key_frame=anchor.is_key_frame,
                     sample_token=anchor.sample_token if anchor.is_key_frame else "",
+                )
+            rows = [r for g in groups for _, r in g]
+            if rows and self._empty_rows.issuperset(rows):
+                # partial emptiness is real (and counted); a whole scene without a point is not
+                first = self.tables.radar.filename[rows[0]].decode("utf-8")
+                raise DataError(
+                    f"scene {info.name!r}: all {len(rows)} radar sweeps are empty (no point with "
+                    f"finite values), e.g. {os.path.join(self._root, first)}"
                 )
         self._report_skips(info.name, before)
 

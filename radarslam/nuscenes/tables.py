@@ -22,6 +22,7 @@ separated by single commas, ``]``) is checked for the whole file.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 import os
@@ -297,14 +298,28 @@ def _text_array(path: Path, values: list, what: str, utf8: bool = False) -> np.n
         raise DataError(f"{path}: a radar record has a non-ASCII {what}") from None
 
 
-def _number_block(path: Path, recs: list[dict], key: str, n: int) -> np.ndarray:
-    """(len(recs), n) float array of one list-valued field, validated in bulk."""
+def _number_block(
+    path: Path, recs: list[dict], key: str, n: int, check_types: bool = False
+) -> np.ndarray:
+    """(len(recs), n) float array of one list-valued field, validated in bulk.
+
+    The dtype numpy infers rejects strings ("1" would convert under dtype=float64), nulls and
+    nested lists in C; booleans mix into a float array unnoticed, so ``check_types`` (set when the
+    JSON text holds ``true``/``false`` at all) checks each element's type as well."""
     try:
         values = [r[key] for r in recs]
-        arr = np.array(values, dtype=np.float64)
-        if arr.shape == (len(recs), n) and set(map(type, values)) <= {list}:
-            return arr
-    except (KeyError, TypeError, ValueError):
+        arr = np.array(values)  # numbers only -> int64/float64; a string -> <U, null -> object
+        if (
+            arr.shape == (len(recs), n)
+            and arr.dtype.kind in "fi"
+            and set(map(type, values)) <= {list}
+            and (
+                not check_types
+                or set(map(type, itertools.chain.from_iterable(values))) <= {int, float}
+            )
+        ):
+            return arr.astype(np.float64, copy=False)
+    except (KeyError, TypeError, ValueError, OverflowError):
         pass
     for r in recs:  # slow path: name the bad record
         _floats(path, r, key, n)
@@ -316,6 +331,71 @@ def _loads(path: Path, raw: bytes, offset: int) -> dict:
         return json.loads(raw)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"{path}: corrupt JSON in the record at byte {offset} ({exc})") from None
+
+
+def _find_record(path: Path, token: bytes) -> dict | None:
+    """The record of ``token`` in a streamed table, or None (slow: for error messages only)."""
+    pattern = re.compile(rb'"token"\s*:\s*"' + re.escape(token) + rb'"')
+    for body, base in _iter_chunks(path):
+        m = pattern.search(body)
+        if m:
+            start = body.rfind(b"{", 0, m.start())
+            end = body.find(b"}", m.end()) + 1
+            return _loads(path, body[start:end], base + start)
+    return None
+
+
+def _check_scene_samples(
+    p_scene: Path, p_sample: Path, scenes: list[dict], sample_row: dict, s_scene: np.ndarray
+) -> None:
+    """Every scene has samples, and its first/last sample belong to it."""
+    count = np.bincount(s_scene, minlength=len(scenes))
+
+    def row_of(tok) -> int | None:
+        return sample_row.get(tok) if isinstance(tok, str) else None
+
+    for row, rec in enumerate(scenes):
+        name = rec["name"]
+        problems = []
+        for key in ("first_sample_token", "last_sample_token"):
+            tok = rec[key]
+            j = row_of(tok)
+            if tok == "":
+                problems.append(f"{key} is empty")
+            elif j is None:
+                problems.append(f"{key} {tok!r} is not in {p_sample.name}")
+            elif s_scene[j] != row:
+                other = scenes[s_scene[j]]["name"]
+                problems.append(f"{key} {tok!r} belongs to scene {other!r}")
+        if count[row] == 0:
+            why = f" ({problems[0]})" if problems else ""
+            raise DataError(
+                f"{p_scene}: scene {name!r} has no samples: no record of {p_sample.name} has "
+                f"scene_token {rec['token']!r}{why}"
+            )
+        if problems:
+            raise DataError(f"{p_scene}: scene {name!r} {problems[0]}")
+
+
+def _warn_non_unit(
+    path: Path, what: str, tokens, quats: np.ndarray, norms: np.ndarray | None = None
+) -> None:
+    """One warning per table when rotation quaternions are not unit (they are normalised)."""
+    if norms is None:
+        norms = np.linalg.norm(quats, axis=1)
+    off = np.abs(norms - 1.0) > 1e-3
+    if off.any():
+        i = int(np.flatnonzero(off)[0])
+        tok = tokens[i].decode() if isinstance(tokens[i], bytes) else tokens[i]
+        log.warning(
+            "%s: %d %s(s) have a rotation quaternion whose norm is not 1 (first: %r, norm %.6g); "
+            "they are normalised",
+            path,
+            int(off.sum()),
+            what,
+            tok,
+            float(norms[i]),
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -441,12 +521,7 @@ class NuScenesTables:
                 if j is None:
                     raise DataError(f"{p_sample}: sample {s_token[i]!r} next {t!r} is not a sample")
                 s_next[i] = j
-        for rec in scenes:
-            for key in ("first_sample_token", "last_sample_token"):
-                if rec[key] not in sample_row:
-                    raise DataError(
-                        f"{p_scene}: scene {rec['name']!r} {key} {rec[key]!r} is not in sample.json"
-                    )
+        _check_scene_samples(p_scene, p_sample, scenes, sample_row, s_scene)
 
         sensor_channel = {}
         for i, rec in enumerate(sensors):
@@ -470,8 +545,20 @@ class NuScenesTables:
             if cs_channel[i] >= 0:
                 cs_t[i] = _floats(p_cs, rec, "translation", 3)
                 cs_q[i] = _floats(p_cs, rec, "rotation", 4)
+                if not np.isfinite(cs_t[i]).all():
+                    raise DataError(
+                        f"{p_cs}: record {rec['token']!r} has a non-finite translation "
+                        f"{cs_t[i].tolist()}"
+                    )
                 if not np.isfinite(cs_q[i]).all() or np.linalg.norm(cs_q[i]) < 1e-9:
-                    raise DataError(f"{p_cs}: record {rec['token']!r} has a degenerate rotation")
+                    raise DataError(
+                        f"{p_cs}: record {rec['token']!r} has a degenerate rotation "
+                        f"{cs_q[i].tolist()}"
+                    )
+        radar_cs = np.flatnonzero(cs_channel >= 0)
+        _warn_non_unit(
+            p_cs, "calibrated_sensor record", [cs_token[i] for i in radar_cs], cs_q[radar_cs]
+        )
         return SmallTables(
             scenes=scenes,
             logs=logs,
@@ -624,10 +711,8 @@ class NuScenesTables:
             bad = (rows < 0) & (arr != b"")
             if bad.any():
                 i = int(np.flatnonzero(bad)[0])
-                raise DataError(
-                    f"{p_sd}: radar record {token[i].decode()!r} {which} {arr[i].decode()!r} is "
-                    f"not a radar sample_data record"
-                )
+                role = f"the {which} of radar record {token[i].decode()!r}"
+                raise DataError(self._why_not_radar(arr[i], role))
             return rows.astype(np.int32)
 
         prev_rows = chain(joined("prev"), "prev")
@@ -663,8 +748,9 @@ class NuScenesTables:
                 pieces.append((body[start:pos], base + start))
             recs = _loads_many(p_ego, pieces)
             r = rows[hits]
-            u_t[r] = _number_block(p_ego, recs, "translation", 3)
-            u_q[r] = _number_block(p_ego, recs, "rotation", 4)
+            bools = b"true" in body or b"false" in body  # C search; never in real ego poses
+            u_t[r] = _number_block(p_ego, recs, "translation", 3, bools)
+            u_q[r] = _number_block(p_ego, recs, "rotation", 4, bools)
             found[r] = True
         if not found.all():
             missing = uniq[~found][0].decode()
@@ -672,11 +758,23 @@ class NuScenesTables:
                 f"{p_ego}: ego pose {missing!r} of a radar sample_data is missing "
                 f"({int((~found).sum())} missing in all)"
             )
-        bad_q = np.linalg.norm(u_q, axis=1) < 1e-9
-        if bad_q.any() or not (np.isfinite(u_q).all() and np.isfinite(u_t).all()):
-            raise DataError(
-                f"{p_ego}: an ego pose has a degenerate or non-finite rotation/translation"
+        norm_q = np.linalg.norm(u_q, axis=1)
+        finite_q, finite_t = np.isfinite(u_q).all(axis=1), np.isfinite(u_t).all(axis=1)
+        bad = ~finite_q | ~finite_t | (norm_q < 1e-9)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            what = (
+                "a non-finite rotation"
+                if not finite_q[i]
+                else "a non-finite translation"
+                if not finite_t[i]
+                else "a zero rotation quaternion"
             )
+            raise DataError(
+                f"{p_ego}: ego pose {uniq[i].decode()!r} has {what} (rotation {u_q[i].tolist()}, "
+                f"translation {u_t[i].tolist()}; {int(bad.sum())} bad ego pose(s) in all)"
+            )
+        _warn_non_unit(p_ego, "ego pose", uniq, u_q, norm_q)
         if n:
             log.debug("indexed %d radar sample_data records of %s", n, self.table_dir)
 
@@ -696,6 +794,34 @@ class NuScenesTables:
             next=next_rows,
             ego_translation=u_t[inverse].reshape(n, 3),
             ego_rotation=u_q[inverse].reshape(n, 4),
+        )
+
+    def _why_not_radar(self, tok: bytes, role: str) -> str:
+        """Error message for a prev/next token that is not a radar record: look the token up in
+        sample_data.json (error path only) and say what is wrong with its record."""
+        p_sd = self.path("sample_data")
+        name = tok.decode(errors="replace")
+        rec = _find_record(p_sd, tok)
+        if rec is None:
+            return f"{p_sd}: sample_data {name!r} ({role}) is not in {p_sd.name}"
+        where = f"{p_sd}: sample_data record {name!r} ({role})"
+        fn = rec.get("filename")
+        cs_tok = rec.get("calibrated_sensor_token")
+        cs = self.small.cs_row.get(cs_tok, -1) if isinstance(cs_tok, str) else -1
+        cs_radar = cs >= 0 and self.small.cs_channel[cs] >= 0
+        tail = ", though its calibrated_sensor is a radar's" if cs_radar else ""
+        if "filename" not in rec:
+            return f"{where} has no 'filename' field{tail}"
+        if not isinstance(fn, str):
+            return f"{where} has filename {fn!r}, expected a string"
+        if "RADAR_" not in fn:
+            return (
+                f"{where} has filename {fn!r}, not a radar file (samples/RADAR_*/ or "
+                f"sweeps/RADAR_*/){tail}"
+            )
+        return (
+            f"{where} has a radar filename {fn!r} but calibrated_sensor_token "
+            f"{cs_tok!r} is not a radar's calibration"
         )
 
     def world_from_ego(self, row: int) -> np.ndarray:

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 
 from radarslam.config import StrictModel
 from radarslam.odometry.doppler import DopplerConfig
+
+#: A non-negative float, and three of them: (x, y, yaw) noise terms of the SE(2) fusion.
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Triple = tuple[NonNegative, NonNegative, NonNegative]
 
 
 class PointsConfig(StrictModel):
@@ -24,6 +28,15 @@ class PointsConfig(StrictModel):
     invalid_states: list[int] | None = Field(default_factory=lambda: [0])
     dynprop_states: list[int] | None = None
     ambig_states: list[int] | None = Field(default_factory=lambda: [3])
+
+    @model_validator(mode="after")
+    def _range_order(self) -> PointsConfig:
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(
+                f"min_range_m ({self.min_range_m}) must be below max_range_m "
+                f"({self.max_range_m}): no point would be kept"
+            )
+        return self
 
 
 class RegistrationConfig(StrictModel):
@@ -104,11 +117,18 @@ class FusionConfig(StrictModel):
     icp_along_track_sigma_fraction: float | None = Field(1.0, gt=0)
     #: Random walk of the twist between Doppler fits, (m/s, m/s, rad/s) per sqrt(second): covers
     #: acceleration while the radars fire at different times within a frame.
-    process_noise: list[float] = Field(default_factory=lambda: [0.2, 0.2, 0.02])
+    process_noise: Triple = (0.2, 0.2, 0.02)
     #: Twist variance added per second while the Doppler fit is invalid (constant velocity held).
-    invalid_doppler_growth: list[float] = Field(default_factory=lambda: [1.0, 1.0, 0.05])
+    invalid_doppler_growth: Triple = (1.0, 1.0, 0.05)
     #: Segments of a multi-scene run restart (from initial_pose) after a gap longer than this.
     max_gap_s: float = Field(1.0, gt=0)
+
+    @field_validator("process_noise", "invalid_doppler_growth", mode="before")
+    @classmethod
+    def _three_values(cls, value):
+        if isinstance(value, (list, tuple)) and len(value) != 3:
+            raise ValueError(f"expected 3 values (x, y, yaw), got {len(value)}")
+        return value
 
 
 class OdometryConfig(StrictModel):

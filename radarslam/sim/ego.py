@@ -41,8 +41,15 @@ def read_tum(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: TUM trajectory file does not exist")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: not a text TUM trajectory file (not UTF-8)") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read the TUM trajectory ({exc.strerror})") from None
     rows = []
-    for no, line in enumerate(path.read_text().splitlines(), 1):
+    lines = []
+    for no, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -53,6 +60,7 @@ def read_tum(path: str | Path) -> np.ndarray:
             )
         try:
             rows.append([float(x) for x in parts])
+            lines.append(no)
         except ValueError:
             raise DataError(f"{path}:{no}: non-numeric value in {line!r}") from None
     if len(rows) < 4:
@@ -61,7 +69,11 @@ def read_tum(path: str | Path) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise DataError(f"{path}: contains non-finite values")
     if np.any(np.diff(arr[:, 0]) <= 0):
-        raise DataError(f"{path}: timestamps are not strictly increasing")
+        i = int(np.flatnonzero(np.diff(arr[:, 0]) <= 0)[0]) + 1
+        raise DataError(
+            f"{path}:{lines[i]}: timestamp {float(arr[i, 0])!r} is not later than the previous "
+            "one; timestamps must be strictly increasing"
+        )
     qn = np.linalg.norm(arr[:, 4:8], axis=1)
     if np.any(qn < 1e-6):
         raise DataError(f"{path}: contains a zero quaternion")

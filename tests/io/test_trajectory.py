@@ -66,6 +66,14 @@ def test_empty_trajectories(tmp_path):
         ("1.0 0 0 zz 0 0 0 1\n", r"bad\.tum:1: non-numeric"),
         ("1.0 0 0 nan 0 0 0 1\n", r"bad\.tum:1: non-finite"),
         ("1.0 0 0 0 0 0 0 0\n", r"bad\.tum:1: zero-norm quaternion"),
+        (
+            "1.0 0 0 0 0 0 0 1\n# c\n1.000000 1 0 0 0 0 0 1\n",
+            r"bad\.tum:3: timestamp 1\.000000 repeats the previous one \(line 1\); timestamps must",
+        ),
+        (
+            "1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n1.5 0 0 0 0 0 0 1\n",
+            r"bad\.tum:3: timestamp 1\.5 is earlier than the previous one \(line 2\)",
+        ),
     ],
 )
 def test_malformed_tum_names_file_and_line(tmp_path, text, match):
@@ -97,3 +105,10 @@ def test_write_rejects_bad_input(tmp_path):
     with pytest.raises(DataError, match="pose 0 has non-finite"):
         write_kitti(tmp_path / "x.txt", bad)
     assert not (tmp_path / "x.txt").exists()
+
+
+def test_binary_tum_is_a_data_error(tmp_path):
+    path = tmp_path / "bin.tum"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe" * 10)
+    with pytest.raises(DataError, match=r"bin\.tum: not a text trajectory file"):
+        read_tum(path)

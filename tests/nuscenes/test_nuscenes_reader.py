@@ -11,6 +11,7 @@ from mini_dataroot import MOUNTS, PERIOD_US, VERSION, ego_from_sensor
 from radarslam.errors import DataError
 from radarslam.geometry import invert
 from radarslam.nuscenes.filters import RadarPointFilter
+from radarslam.nuscenes.pcd import pcd_bytes
 from radarslam.nuscenes.reader import NuScenesRadar, stack_in_reference
 from radarslam.types import ACCUMULATED_DTYPE, RADAR_CHANNELS, RADAR_DTYPE
 
@@ -264,6 +265,28 @@ def test_empty_sweeps_and_nan_points_are_counted(mini, reader, caplog):
     for tok in mini.nan_tokens:
         s = reader.load_sweep(tok, filters=RadarPointFilter.none())
         assert all(np.isfinite(s.points[f]).all() for f in ("x", "vx_comp"))
+
+
+def test_scene_with_only_empty_sweeps_is_an_error(mini, clone):
+    root = clone(copy_files=True)
+    reader = NuScenesRadar(root, VERSION, use_cache=False)
+    empty = pcd_bytes(np.zeros(0, dtype=RADAR_DTYPE))
+    for ch in RADAR_CHANNELS:
+        for t in mini.sweeps.get(("scene-0003", ch), []):
+            (root / reader.load_sweep(t).filename).write_bytes(empty)
+    reader = NuScenesRadar(root, VERSION, use_cache=False)
+    # one radar at a time: empty sweeps are yielded, as documented
+    assert all(len(s) == 0 for s in reader.iter_sweeps("scene-0003", "RADAR_FRONT"))
+    frames = []
+    with pytest.raises(
+        DataError, match=r"scene 'scene-0003': all \d+ radar sweeps are empty"
+    ) as exc:
+        for f in reader.iter_frames("scene-0003"):
+            frames.append(f)
+    assert str(root) in str(exc.value) and ".pcd" in str(exc.value)
+    assert len(frames) > 0  # raised at the end of the scene, after its (empty) frames
+    # a scene with some empty sweeps (scene-0002 has 2) is not an error
+    assert len(list(reader.iter_frames("scene-0002"))) > 0
 
 
 @pytest.mark.parametrize(

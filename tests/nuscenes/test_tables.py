@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 
 import numpy as np
 import pytest
@@ -174,11 +176,15 @@ def _radar(recs):
             lambda rs: _radar(rs).update(sample_token="x"),
             "sample_token 'x' is not in",
         ),
-        ("sample_data", lambda rs: _radar(rs).update(next="x"), "next 'x' is not a radar"),
+        (
+            "sample_data",
+            lambda rs: _radar(rs).update(next="x"),
+            r"sample_data 'x' \(the next of radar record '\w+'\) is not in sample_data\.json",
+        ),
         ("sample_data", lambda rs: _radar(rs).update(timestamp=1.5), "timestamp 1.5 is not an int"),
         ("sample_data", lambda rs: _radar(rs).update(calibrated_sensor_token="q"), "'q' is not in"),
         ("ego_pose", lambda rs: rs.pop(-1), r"ego_pose\.json: ego pose .* is missing"),
-        ("ego_pose", lambda rs: rs[-1].update(rotation=[0, 0, 0, 0]), "degenerate"),
+        ("ego_pose", lambda rs: rs[-1].update(rotation=[0, 0, 0, 0]), "zero rotation quaternion"),
         ("ego_pose", lambda rs: rs[-1].update(translation=[1, 2]), "expected 3 numbers"),
         ("sample", lambda rs: rs[0].update(scene_token="s"), "refers to scene 's'"),
         ("scene", lambda rs: rs[0].update(log_token="l"), "refers to log 'l'"),
@@ -191,3 +197,170 @@ def test_inconsistent_tables(clone, name, edit, match):
     t = NuScenesTables(root, VERSION, use_cache=False)
     with pytest.raises(DataError, match=match):
         _ = t.radar
+
+
+# ---- scenes and their samples ------------------------------------------------------------------
+def _move_samples(root, src: int, dst: int) -> tuple[str, str]:
+    """Reassign every sample of scene.json record ``src`` to scene ``dst``; (name, first token)."""
+    scenes = json.loads((root / VERSION / "scene.json").read_text())
+    a, b = scenes[src]["token"], scenes[dst]["token"]
+    _edit_records(
+        root, "sample", lambda rs: [r.update(scene_token=b) for r in rs if r["scene_token"] == a]
+    )
+    return scenes[src]["name"], scenes[src]["first_sample_token"]
+
+
+def test_scene_without_samples_is_an_error(clone):
+    root = clone()
+    name, first = _move_samples(root, 1, 0)
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    with pytest.raises(DataError) as exc:
+        _ = t.small
+    msg = str(exc.value)
+    assert msg.startswith(str(root / VERSION / "scene.json"))
+    assert f"scene {name!r} has no samples" in msg and f"first_sample_token {first!r}" in msg
+    assert "belongs to scene" in msg and "\n" not in msg
+
+
+@pytest.mark.parametrize("key", ["first_sample_token", "last_sample_token"])
+def test_scene_first_or_last_sample_of_another_scene(clone, key):
+    root = clone()
+    scenes = json.loads((root / VERSION / "scene.json").read_text())
+    other = scenes[0][key]
+    _edit_records(root, "scene", lambda rs: rs[1].update({key: other}))
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    match = f"scene {scenes[1]['name']!r} {key} {other!r} belongs to scene {scenes[0]['name']!r}"
+    with pytest.raises(DataError, match=match):
+        _ = t.small
+
+
+def test_scene_with_empty_first_sample_token(clone):
+    root = clone()
+    _edit_records(root, "scene", lambda rs: rs[2].update(first_sample_token=""))
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    with pytest.raises(DataError, match=r"scene 'scene-\d+' first_sample_token is empty"):
+        _ = t.small
+
+
+# ---- a neighbour that is not a radar record: the message names the real cause --------------------
+def _middle_radar(recs) -> dict:
+    return next(r for r in recs if "/RADAR_FRONT/" in r.get("filename", "") and r["prev"])
+
+
+@pytest.mark.parametrize(
+    ("edit", "cause"),
+    [
+        (lambda r: r.pop("filename"), r"has no 'filename' field, though its calibrated_sensor"),
+        (
+            lambda r: r.update(filename="maps/abc.png"),
+            r"has filename 'maps/abc\.png', not a radar file",
+        ),
+    ],
+)
+def test_radar_record_without_radar_filename(clone, edit, cause):
+    root = clone()
+    bad = {}
+
+    def damage(recs):
+        r = _middle_radar(recs)
+        bad["token"] = r["token"]
+        edit(r)
+
+    _edit_records(root, "sample_data", damage)
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    with pytest.raises(DataError) as exc:
+        _ = t.radar
+    msg = str(exc.value)
+    assert msg.startswith(
+        f"{root / VERSION / 'sample_data.json'}: sample_data record {bad['token']!r}"
+    )
+    assert "of radar record" in msg
+    assert re.search(cause, msg), msg
+
+
+# ---- ego poses and calibrations: bad values named, non-unit quaternions warned -----------------
+def _radar_ego_token(root) -> str:
+    sd = json.loads((root / VERSION / "sample_data.json").read_text())
+    return _middle_radar(sd)["ego_pose_token"]
+
+
+def _edit_ego(root, **update) -> str:
+    tok_ = _radar_ego_token(root)
+    _edit_records(
+        root, "ego_pose", lambda rs: next(r for r in rs if r["token"] == tok_).update(update)
+    )
+    return tok_
+
+
+@pytest.mark.parametrize(
+    ("update", "match"),
+    [
+        (
+            {"rotation": [float("nan"), 0.0, 0.0, 1.0]},
+            r"has a non-finite rotation \(rotation \[nan",
+        ),
+        ({"rotation": [0, 0, 0, 0]}, r"has a zero rotation quaternion \(rotation \[0\.0, 0\.0"),
+        ({"translation": [1.0, float("inf"), 0.0]}, r"has a non-finite translation .*\[1\.0, inf"),
+        ({"translation": ["1", "2", "3"]}, r"field 'translation' is \['1', '2', '3'\], expected 3"),
+        ({"translation": [1.0, True, 3.0]}, r"field 'translation' is \[1\.0, True, 3\.0\]"),
+        ({"rotation": [1.0, 0.0, None, 0.0]}, r"field 'rotation' is \[1\.0, 0\.0, None, 0\.0\]"),
+    ],
+)
+def test_bad_ego_pose_values_are_named(clone, update, match):
+    root = clone()
+    tok_ = _edit_ego(root, **update)
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    with pytest.raises(DataError, match=match) as exc:
+        _ = t.radar
+    msg = str(exc.value)
+    assert msg.startswith(str(root / VERSION / "ego_pose.json")) and repr(tok_) in msg
+
+
+def test_non_unit_quaternions_are_normalised_with_one_warning(clone, caplog):
+    root = clone()
+    sd = json.loads((root / VERSION / "sample_data.json").read_text())
+    radar_egos = [r["ego_pose_token"] for r in sd if "/RADAR_" in r["filename"]][:5]
+
+    def scale(recs):
+        for r in recs:
+            if r["token"] in radar_egos:
+                r["rotation"] = [3.0 * q for q in r["rotation"]]
+
+    _edit_records(root, "ego_pose", scale)
+    cs_tok = {}
+
+    def scale_cs(recs):
+        r = recs[_radar_cs(root)]
+        cs_tok["t"] = r["token"]
+        r["rotation"] = [3.0 * q for q in r["rotation"]]
+
+    _edit_records(root, "calibrated_sensor", scale_cs)
+    with caplog.at_level(logging.WARNING, logger="radarslam.nuscenes"):
+        t = NuScenesTables(root, VERSION, use_cache=False)
+        radar = t.radar
+    ego_msgs = [m for m in caplog.messages if "ego_pose.json" in m]
+    assert len(ego_msgs) == 1, caplog.messages
+    assert "5 ego pose(s) have a rotation quaternion whose norm is not 1" in ego_msgs[0]
+    assert "norm 3" in ego_msgs[0] and any(tk in ego_msgs[0] for tk in radar_egos)
+    cs_msgs = [m for m in caplog.messages if "calibrated_sensor.json" in m]
+    assert len(cs_msgs) == 1 and cs_tok["t"] in cs_msgs[0] and "1 calibrated_sensor" in cs_msgs[0]
+    # still normalised: every pose is a rotation
+    for i in range(len(radar)):
+        rot = t.world_from_ego(i)[:3, :3]
+        np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
+
+
+def _radar_cs(root) -> int:
+    sensors = json.loads((root / VERSION / "sensor.json").read_text())
+    radar = {r["token"] for r in sensors if r["channel"].startswith("RADAR_")}
+    cs = json.loads((root / VERSION / "calibrated_sensor.json").read_text())
+    return next(i for i, r in enumerate(cs) if r["sensor_token"] in radar)
+
+
+def test_calibrated_sensor_non_finite_translation(clone):
+    root = clone()
+    i = _radar_cs(root)
+    _edit_records(root, "calibrated_sensor", lambda rs: rs[i].update(translation=[0.0, 1e999, 0]))
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    with pytest.raises(DataError, match=r"calibrated_sensor\.json: record '\w+' has a non-finite"):
+        _ = t.small

@@ -12,6 +12,7 @@ import pytest
 
 from radarslam.errors import ConfigError, DataError
 from radarslam.nuscenes.pcd import read_pcd
+from radarslam.sim.ego import read_tum
 from radarslam.sim.generate import CHANNELS, TABLES, is_complete, simulate
 from radarslam.types import RADAR_DTYPE
 
@@ -194,6 +195,19 @@ def test_bad_inputs_are_one_line_errors(tmp_path):
     with pytest.raises(DataError, match="expected 8 values"):
         simulate("tiny", tmp_path / "w", progress=False, trajectory_tum=bad)
     assert not (tmp_path / "w").exists()  # validated before anything is written
+
+
+def test_bad_tum_files_name_the_file(tmp_path):
+    binary = tmp_path / "drive.tum"
+    binary.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe\x00" * 20)
+    with pytest.raises(DataError, match=r"drive\.tum: not a text TUM trajectory file"):
+        read_tum(binary)
+    dup = tmp_path / "dup.tum"
+    dup.write_text("".join(f"{t} {t} 0 0 0 0 0 1\n" for t in (0.0, 0.1, 0.1, 0.2, 0.3)))
+    with pytest.raises(
+        DataError, match=r"dup\.tum:3: timestamp 0\.1 is not later than the previous"
+    ):
+        read_tum(dup)
 
 
 def test_tum_trajectory_is_followed_exactly(tmp_path):
