@@ -16,6 +16,7 @@ fit) is a one-line :class:`CheckpointError` naming the file.
 from __future__ import annotations
 
 import hashlib
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -88,17 +89,47 @@ def save_checkpoint(
     return path
 
 
+def _first_sentence(exc: BaseException, limit: int = 120) -> str:
+    """The first sentence of an exception message, cut at a word boundary."""
+    text = " ".join(str(exc).split())
+    if ". " in text:
+        text = text[: text.index(". ")]
+    if len(text) > limit:
+        text = text[:limit].rsplit(" ", 1)[0] + " ..."
+    return text
+
+
+def _check_archive(path: Path) -> None:
+    """A checkpoint is a torch zip archive: anything else fails here with a short reason (torch's
+    own messages for such files are several sentences about ``weights_only``)."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(4)
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as exc:
+        raise CheckpointError(f"{path}: unreadable ({exc.strerror or exc})") from None
+    if is_zip:
+        return
+    if not head:
+        raise CheckpointError(f"{path}: not a readable checkpoint (empty file)")
+    if head.startswith(b"PK"):
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint (truncated or damaged zip archive)"
+        )
+    raise CheckpointError(f"{path}: not a radarslam checkpoint (not a torch zip archive)")
+
+
 def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
     """The verified payload of a checkpoint (weights still in their stored dtype)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file does not exist")
+    _check_archive(path)
     try:
         payload = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/garbled zips
-        first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else ""
         raise CheckpointError(
-            f"{path}: not a readable checkpoint ({type(exc).__name__}: {first})"
+            f"{path}: not a readable checkpoint ({type(exc).__name__}: {_first_sentence(exc)})"
         ) from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a radarslam AutoPlace checkpoint (no '{FORMAT}' tag)")
@@ -159,4 +190,5 @@ def load_model(
     meta = dict(payload.get("meta") or {})
     meta["train_config"] = payload.get("train_config")
     meta["stored_dtype"] = payload.get("dtype")
+    meta["weights_digest"] = payload["digest"]  # identifies the weights (databases record it)
     return model, cfg, meta

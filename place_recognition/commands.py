@@ -12,6 +12,7 @@ pr_app = typer.Typer(
 )
 
 _SET = typer.Option(None, "--set", help="config override key.sub=value (repeatable)")
+EVAL_SPLITS = ("val", "test")  # the database and train splits are not held out
 
 
 def _echo_table(rows: list[dict]) -> None:
@@ -32,8 +33,13 @@ def prepare_cmd(
     """Index key frames, accumulate + DPR + rasterise, split; cached in OUT/<name>/."""
     from place_recognition.config import load_prepare_config
     from place_recognition.dataset import split_summary
+    from place_recognition.outputs import check_output_dir
     from place_recognition.prepare import prepare
+    from radarslam.errors import ConfigError
 
+    if jobs < 1:
+        raise ConfigError(f"--jobs {jobs}: must be >= 1")
+    check_output_dir(out)
     sets = list(overrides or [])
     if dataroot is not None:
         sets.append(f"source.dataroot={dataroot}")
@@ -51,17 +57,35 @@ def train_cmd(
     out: Path = typer.Option(Path("outputs/place_recognition/train"), help="output directory"),
     set_model: list[str] | None = typer.Option(None, "--set-model", help="model override"),
     set_train: list[str] | None = typer.Option(None, "--set-train", help="train override"),
+    resume: bool = typer.Option(False, help="continue the run in OUT (OUT/last.pt)"),
+    overwrite: bool = typer.Option(False, help="replace a previous run's checkpoints in OUT"),
 ) -> None:
-    """Train an AutoPlace network on a prepared cache (place_recognition.train)."""
+    """Train an AutoPlace network on a prepared cache (place_recognition.train).
+
+    OUT must not hold another run's checkpoints unless --resume or --overwrite is given.
+    """
     from place_recognition.dataset import load_prepared
     from place_recognition.models import load_model_config
+    from place_recognition.outputs import check_output_dir
     from place_recognition.train import load_train_config
     from place_recognition.train import train as run_train
+    from radarslam.errors import CheckpointError, ConfigError
 
-    data = load_prepared(prepared)
+    check_output_dir(out)
+    if resume and overwrite:
+        raise ConfigError("give --resume or --overwrite, not both")
+    previous = [n for n in ("best.pt", "last.pt") if (out / n).is_file()]
+    if resume and not (out / "last.pt").is_file():
+        raise CheckpointError(f"{out / 'last.pt'}: nothing to resume (file does not exist)")
+    if previous and not (resume or overwrite):
+        raise ConfigError(
+            f"{out}: holds a previous run ({', '.join(previous)}); pass --resume to continue "
+            "it, --overwrite to replace it, or choose another --out"
+        )
     model_cfg = load_model_config(model, set_model)
     train_cfg = load_train_config(train, set_train)
-    result = run_train(train_cfg, model_cfg, data, out)
+    data = load_prepared(prepared)
+    result = run_train(train_cfg, model_cfg, data, out, resume=resume)
     typer.echo(f"best checkpoint: {result.best_checkpoint}")
 
 
@@ -86,10 +110,14 @@ def eval_cmd(
         evaluate_method,
         write_results,
     )
+    from place_recognition.outputs import check_output_dir
     from radarslam.errors import ConfigError
 
     if (checkpoint is None) == (baseline is None):
         raise ConfigError("give exactly one of --checkpoint or --baseline")
+    if split not in EVAL_SPLITS:
+        raise ConfigError(f"--split {split!r}: choose one of {', '.join(EVAL_SPLITS)}")
+    check_output_dir(out)
     cfg = load_eval_config(config, overrides)
     data = load_prepared(prepared)
     if checkpoint is not None:
@@ -119,6 +147,7 @@ def build_db_cmd(
     from tqdm import tqdm
 
     from place_recognition.config import PlaceRecognizerConfig
+    from place_recognition.outputs import check_output_file
     from place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
     from radarslam.config import load_config
     from radarslam.errors import ConfigError
@@ -126,6 +155,7 @@ def build_db_cmd(
 
     if not scene and location is None:
         raise ConfigError("give --scene (repeatable) or --location")
+    check_output_file(out)
     cfg = load_config(PlaceRecognizerConfig, config, overrides)
     rec = PlaceRecognizer(checkpoint=checkpoint, config=cfg)
     reader = NuScenesRadar(dataroot, version)
@@ -149,9 +179,11 @@ def query_cmd(
 ) -> None:
     """Top-k places for key frames of a scene (the database is not modified)."""
     from place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
-    from radarslam.errors import DataError
+    from radarslam.errors import ConfigError, DataError
     from radarslam.nuscenes.reader import NuScenesRadar
 
+    if k < 1:
+        raise ConfigError(f"-k {k}: must be >= 1")
     rec = PlaceRecognizer.load(database, checkpoint=checkpoint)
     reader = NuScenesRadar(dataroot, version)
     found = False

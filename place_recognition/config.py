@@ -28,6 +28,15 @@ def _check_channels(channels: list[str]) -> list[str]:
     return channels
 
 
+def check_device_name(device: str) -> str:
+    """A torch device name this code accepts: ``auto`` (CUDA when available), cpu, cuda, cuda:N."""
+    if device != "auto" and not (
+        device in ("cpu", "cuda") or (device.startswith("cuda:") and device[5:].isdigit())
+    ):
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {device!r}")
+    return device
+
+
 class AccumulationConfig(StrictModel):
     """How one key frame's cloud is assembled (devkit ``from_file_multisweep`` semantics)."""
 
@@ -226,7 +235,9 @@ class PlaceRecognizerConfig(StrictModel):
     rerank: RerankConfig = Field(default_factory=RerankConfig)
     retrieval: RetrievalConfig = Field(default_factory=RetrievalConfig)
     seq_len: int | None = Field(None, ge=1)  # None: the model's own sequence length
-    device: str = "cpu"
+    device: str = "cpu"  # "auto" (cuda if available, else cpu), "cpu", "cuda", "cuda:N"
+
+    _v_device = field_validator("device")(check_device_name)
 
 
 def load_prepare_config(path: str | Path | None, overrides: list[str] | None = None):

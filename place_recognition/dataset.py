@@ -17,6 +17,8 @@ semantics); training negatives are DB frames farther than ``neg_radius_m``.
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -301,14 +303,43 @@ class PreparedData:
         return np.linalg.norm(d - q, axis=-1) <= self.pos_radius_m
 
 
+NPZ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+"""What reading a damaged .npz raises (a truncated zip, a bad CRC, a broken deflate stream...)."""
+
+STALE_HINT = "re-run `radarslam pr prepare --overwrite`"
+REDO_HINT = "re-run `radarslam pr prepare` (it recomputes damaged stages)"
+
+
+def read_npz(path: str | Path) -> dict[str, np.ndarray]:
+    """Every array of an .npz (no pickles); ValueError with a short reason when the file is not
+    a readable .npz (empty, another format, truncated, a bad CRC or deflate stream...)."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(4)
+        if not head:
+            raise ValueError("empty file")
+        if not head.startswith(b"PK"):
+            raise ValueError("not an .npz (zip) archive")
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except NPZ_ERRORS as exc:
+        if isinstance(exc, OSError) and exc.strerror:
+            text = exc.strerror
+        else:
+            text = " ".join(str(exc).split())[:160] or type(exc).__name__
+        if isinstance(exc, zipfile.BadZipFile | zlib.error | EOFError):
+            text = f"damaged or truncated archive: {text}"
+        raise ValueError(text) from None
+
+
 def _load_npz(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise DataError(f"{path}: missing (run `radarslam pr prepare` first)")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise DataError(f"{path}: unreadable ({exc})") from None
+        return read_npz(path)
+    except ValueError as exc:
+        raise DataError(f"{path}: unreadable ({exc}); {REDO_HINT}") from None
 
 
 def _need(d: dict, keys: tuple[str, ...], path: Path) -> None:
@@ -347,11 +378,24 @@ def load_prepared(root: str | Path, with_points: bool = True) -> PreparedData:
     split = _load_npz(root / SPLIT_FILE)
     _need(split, ("sequences", *SPLIT_NAMES), root / SPLIT_FILE)
 
-    n = len(frames["positions_xy"])
-    occ = unpack_images(images["occupancy_packed"], int(images["width"]))
+    _check_stages(root, cfg, {FRAMES_FILE: frames, IMAGES_FILE: images, SPLIT_FILE: split,
+                              **({POINTS_FILE: points} if with_points else {})})  # fmt: skip
+    n = _check_frames(frames, root / FRAMES_FILE)
+    _check_split(split, n, root / SPLIT_FILE)
+    width, packed = images["width"], images["occupancy_packed"]
+    if width.size != 1 or not np.issubdtype(width.dtype, np.integer) or packed.ndim != 3:
+        raise DataError(f"{root / IMAGES_FILE}: malformed images (width {width}, packed shape "
+                        f"{packed.shape}); {STALE_HINT}")  # fmt: skip
+    occ = unpack_images(packed, int(width))
     if len(occ) != n:
-        raise DataError(f"{root / IMAGES_FILE}: {len(occ)} images for {n} frames")
+        raise DataError(f"{root / IMAGES_FILE}: {len(occ)} images for {n} frames; {STALE_HINT}")
     if "extra" in images and images["extra"].size:
+        shape = images["extra"].shape
+        if len(shape) != 4 or shape[0] != n or shape[2:] != occ.shape[1:]:
+            raise DataError(
+                f"{root / IMAGES_FILE}: extra channels {images['extra'].shape} do not match "
+                f"{n} images of {occ.shape[1:]}; {STALE_HINT}"
+            )
         # extra channels are stored quantised 0..255; in memory every channel is in [0, 1]
         extra = images["extra"].astype(np.float16) / np.float16(255.0)
         imgs = np.concatenate([occ[:, None].astype(np.float16), extra], axis=1)
@@ -359,8 +403,15 @@ def load_prepared(root: str | Path, with_points: bool = True) -> PreparedData:
         imgs = occ
     if with_points:
         offsets = points["offsets"].astype(np.int64)
-        if len(offsets) != n + 1 or offsets[-1] != len(points["rcs01"]):
-            raise DataError(f"{root / POINTS_FILE}: offsets do not match {n} frames")
+        if (
+            offsets.ndim != 1
+            or len(offsets) != n + 1
+            or offsets[0] != 0
+            or np.any(np.diff(offsets) < 0)
+            or offsets[-1] != len(points["rcs01"])
+            or len(points["xy_cm"]) != len(points["rcs01"])
+        ):
+            raise DataError(f"{root / POINTS_FILE}: offsets do not match {n} frames; {STALE_HINT}")
     xy = points["xy_cm"].astype(np.float32) / 100.0
     return PreparedData(
         root=root,
@@ -380,8 +431,63 @@ def load_prepared(root: str | Path, with_points: bool = True) -> PreparedData:
     )
 
 
+def _check_stages(root: Path, cfg: PrepareConfig, files: dict[str, dict]) -> None:
+    """Every stage file must carry the hash of ``config.yaml``'s sections for its stage: a file
+    left over from another config (an interrupted or failed ``prepare --overwrite``) is stale."""
+    from place_recognition.prepare import STAGE_FILES, stage_hash
+
+    for stage, names in STAGE_FILES.items():
+        want = stage_hash(cfg, stage)
+        for name in names:
+            arrays = files.get(name)
+            if arrays is None or "config_hash" not in arrays:
+                continue  # not loaded, or written by hand without a hash
+            if str(arrays["config_hash"]) != want:
+                raise DataError(
+                    f"{root / name}: stale stage (made with another config than "
+                    f"{root / CONFIG_FILE}); {STALE_HINT}"
+                )
+
+
+def _check_frames(frames: dict, path: Path) -> int:
+    pos = frames["positions_xy"]
+    if pos.ndim != 2 or pos.shape[1:] != (2,):
+        raise DataError(f"{path}: positions_xy must be (N, 2), got {pos.shape}; {STALE_HINT}")
+    n = len(pos)
+    for key in ("yaw_rad", "timestamps_us", "scene_names", "sample_tokens"):
+        if frames[key].shape != (n,):
+            raise DataError(
+                f"{path}: {key} has shape {frames[key].shape}, expected ({n},); {STALE_HINT}"
+            )
+    return n
+
+
+def _check_split(split: dict, n: int, path: Path) -> None:
+    seq = split["sequences"]
+    if seq.ndim != 2 or len(seq) != n or seq.shape[1] < 1:
+        raise DataError(f"{path}: sequences are {seq.shape}, expected ({n}, L); {STALE_HINT}")
+    for key in ("sequences", *SPLIT_NAMES):
+        idx = split[key]
+        if idx.size and not np.issubdtype(idx.dtype, np.integer):
+            raise DataError(f"{path}: '{key}' holds {idx.dtype}, not frame indices; {STALE_HINT}")
+        if key != "sequences" and idx.ndim != 1:
+            raise DataError(f"{path}: '{key}' must be 1-D, got {idx.shape}; {STALE_HINT}")
+        if idx.size and (idx.min() < 0 or idx.max() >= n):
+            raise DataError(
+                f"{path}: '{key}' indexes frames outside [0, {n}) (stale stage); {STALE_HINT}"
+            )
+
+
 def split_summary(root: str | Path) -> dict:
+    """The split counts written by ``prepare`` (``split.json``)."""
     path = Path(root) / "split.json"
     if not path.is_file():
-        raise DataError(f"{path}: missing")
-    return json.loads(path.read_text())
+        raise DataError(f"{path}: missing; {REDO_HINT}")
+    try:
+        counts = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:  # ValueError: JSON and UTF-8 decoding errors
+        text = " ".join(str(exc).split())[:120]
+        raise DataError(f"{path}: unreadable ({text}); {REDO_HINT}") from None
+    if not isinstance(counts, dict):
+        raise DataError(f"{path}: expected a JSON object of split counts; {REDO_HINT}")
+    return counts

@@ -211,6 +211,13 @@ def evaluate_method(
 
     ``tune_on_val``: the RCSHR parameters are grid-searched on the val split's ranking first.
     """
+    if split in ("database", "train"):
+        from radarslam.errors import ConfigError
+
+        raise ConfigError(
+            f"split {split!r} cannot be evaluated (its frames are the database or were trained "
+            "on); use 'val' or 'test'"
+        )
     k = max(max(cfg.recall_at), cfg.rerank.top_m if rerank_cfg is not None else 0)
     queries = _split(data, split)
     ranking = ranking_fn(queries, k)

@@ -8,9 +8,12 @@ written there as ``config.yaml``) with one file per stage:
   cropped points (int16 centimetres) and their min-max-normalised RCS (float16), ``dpr.json``
 - ``split.npz`` / ``split.json``  database/train/val/test indices and the (N, L) sequences.
 
-Each stage stores a hash of the config sections it depends on. A stage whose file exists is
-skipped; if its hash differs from the current config, ``ConfigError`` unless ``overwrite=True``
-(then it and every later stage are recomputed).
+Each stage stores a hash of the config sections it depends on. A stage whose files all exist and
+are readable is skipped; if its hash differs from the current config, ``ConfigError`` unless
+``overwrite=True``. A stage that is recomputed (missing, damaged or overwritten) first deletes its
+files and those of every later stage, and ``config.yaml`` is written last: an interrupted or failed
+run never leaves files of two configs that :func:`~place_recognition.dataset.load_prepared` would
+trust (it checks every file's hash against ``config.yaml``).
 """
 
 from __future__ import annotations
@@ -30,11 +33,14 @@ from place_recognition.dataset import (
     CONFIG_FILE,
     FRAMES_FILE,
     IMAGES_FILE,
+    NPZ_ERRORS,
     POINTS_FILE,
     SPLIT_FILE,
+    SPLIT_NAMES,
     make_split,
 )
 from place_recognition.image import crop_mask, normalise_rcs, pack_images, rasterise
+from place_recognition.outputs import check_output_dir
 from radarslam.config import dump_config
 from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import yaw_of
@@ -48,7 +54,22 @@ _STAGE_SECTIONS = {
     "clouds": ("source", "accumulation", "dpr", "image"),
     "split": ("source", "accumulation", "split"),
 }
-_STAGE_FILE = {"frames": FRAMES_FILE, "clouds": IMAGES_FILE, "split": SPLIT_FILE}
+DPR_FILE = "dpr.json"
+SPLIT_JSON = "split.json"
+#: Every file of a stage, in writing order (the last one marks the stage complete).
+STAGE_FILES = {
+    "frames": (FRAMES_FILE,),
+    "clouds": (POINTS_FILE, DPR_FILE, IMAGES_FILE),
+    "split": (SPLIT_FILE, SPLIT_JSON),
+}
+#: Arrays each .npz must hold to count as written.
+_NPZ_ARRAYS = {
+    FRAMES_FILE: ("positions_xy", "yaw_rad", "timestamps_us", "scene_names", "sample_tokens",
+                  "versions"),
+    POINTS_FILE: ("xy_cm", "rcs01", "offsets"),
+    IMAGES_FILE: ("occupancy_packed", "extra", "width"),
+    SPLIT_FILE: ("sequences", *SPLIT_NAMES),
+}  # fmt: skip
 
 
 def stage_hash(cfg: PrepareConfig, stage: str) -> str:
@@ -63,11 +84,35 @@ def _save_npz(path: Path, **arrays) -> None:
 
 
 def _stored_hash(path: Path) -> str | None:
+    """The config hash of a stage .npz; None when it is missing, damaged (a truncated zip...) or
+    lacks an array: such a stage is recomputed."""
     try:
+        with path.open("rb") as fh:
+            if not fh.read(4).startswith(b"PK"):
+                return None
         with np.load(path, allow_pickle=False) as z:
-            return str(z["config_hash"]) if "config_hash" in z.files else None
-    except (OSError, ValueError, EOFError):
+            want = ("config_hash", *_NPZ_ARRAYS.get(path.name, ()))
+            if any(k not in z.files for k in want):
+                return None
+            return str(z["config_hash"])
+    except NPZ_ERRORS:
         return None
+
+
+def _json_ok(path: Path) -> bool:
+    try:
+        return isinstance(json.loads(path.read_text(encoding="utf-8")), dict)
+    except (OSError, ValueError):  # ValueError: bad JSON or bad UTF-8
+        return False
+
+
+def _remove_stage_files(out: Path, stages: list[str]) -> None:
+    """Delete the files (and stray temporaries) of ``stages`` before they are recomputed."""
+    for stage in stages:
+        for name in STAGE_FILES[stage]:
+            (out / name).unlink(missing_ok=True)
+            for tmp in out.glob(f".{name}.*.tmp"):
+                tmp.unlink(missing_ok=True)
 
 
 @dataclass(frozen=True)
@@ -261,19 +306,30 @@ def build_clouds(
 
 
 def _check_cache(out: Path, cfg: PrepareConfig, overwrite: bool) -> list[str]:
-    """Stages to (re)compute; raises on a stale stage when not overwriting."""
+    """Stages to (re)compute; raises on a stale stage when not overwriting.
+
+    Every file of a stage is checked: a missing or damaged one makes the stage recompute.
+    """
+    check_output_dir(out)
     todo = []
     stale = False
     for stage in STAGES:
-        path = out / _STAGE_FILE[stage]
-        have = _stored_hash(path) if path.is_file() else None
         want = stage_hash(cfg, stage)
-        if have is not None and have != want and not overwrite:
-            raise ConfigError(
-                f"{path} was made with a different config ({', '.join(_STAGE_SECTIONS[stage])}); "
-                "pass overwrite=True (--overwrite) or use another name"
-            )
-        if stale or have is None or have != want or overwrite:
+        complete = True
+        for name in STAGE_FILES[stage]:
+            path = out / name
+            if name.endswith(".json"):
+                complete = complete and path.is_file() and _json_ok(path)
+                continue
+            have = _stored_hash(path) if path.is_file() else None
+            if have is not None and have != want and not overwrite:
+                raise ConfigError(
+                    f"{path} was made with a different config "
+                    f"({', '.join(_STAGE_SECTIONS[stage])}); "
+                    "pass overwrite=True (--overwrite) or use another name"
+                )
+            complete = complete and have == want
+        if stale or not complete or overwrite:
             todo.append(stage)
             stale = True  # later stages depend on earlier ones
     return todo
@@ -292,15 +348,21 @@ def prepare(
 
     ``jobs``: worker processes for the accumulation stage (the expensive one).
     """
+    if jobs < 1:
+        raise ConfigError(f"jobs={jobs}: must be >= 1")
+    check_output_dir(out_root)
     out = Path(out_root) / cfg.name
     todo = _check_cache(out, cfg, overwrite)
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / CONFIG_FILE, dump_config(cfg))
     if not todo:
         log.info("%s: every stage is cached", out)
+        write_text_atomic(out / CONFIG_FILE, dump_config(cfg))
         return out
     if readers is None and ("frames" in todo or "clouds" in todo):
         readers = _readers(cfg)
+    # The stages to recompute (always a stage and every later one) lose their old files first,
+    # so a failure below leaves missing files, never files of another config; the directory
+    # itself is created by the first write.
+    _remove_stage_files(out, todo)
 
     if "frames" in todo:
         if on_stage:
@@ -319,7 +381,7 @@ def prepare(
         occ, extra, xy_cm, rcs01, offsets, stats = build_clouds(cfg, readers, idx, progress, jobs)
         _save_npz(out / POINTS_FILE, config_hash=stage_hash(cfg, "clouds"), xy_cm=xy_cm,
                   rcs01=rcs01, offsets=offsets)  # fmt: skip
-        write_json_atomic(out / "dpr.json", stats)
+        write_json_atomic(out / DPR_FILE, stats)
         # images last: their hash marks the stage complete
         _save_npz(out / IMAGES_FILE, config_hash=stage_hash(cfg, "clouds"),
                   occupancy_packed=occ, extra=extra, width=np.int64(cfg.image.size_px))  # fmt: skip
@@ -330,5 +392,7 @@ def prepare(
         split = make_split(idx.positions_xy, idx.timestamps_us, idx.scene_names, cfg.split)
         _save_npz(out / SPLIT_FILE, config_hash=stage_hash(cfg, "split"),
                   sequences=split.sequences, **split.splits)  # fmt: skip
-        write_json_atomic(out / "split.json", split.counts)
+        write_json_atomic(out / SPLIT_JSON, split.counts)
+    # last: the resolved config describes the directory only once every stage matches it
+    write_text_atomic(out / CONFIG_FILE, dump_config(cfg))
     return out

@@ -52,10 +52,16 @@ class PlaceRecognizer:
         checkpoint: str | Path | None = None,
         config: PlaceRecognizerConfig | None = None,
     ):
+        from place_recognition.train import resolve_device
+
         self.config = config or PlaceRecognizerConfig()
         if model is not None and checkpoint is not None:
             raise CheckpointError("give either a model or a checkpoint, not both")
+        # before any weights are read: an unusable device is a one-line ConfigError
+        self.device = resolve_device(self.config.device)
         self.checkpoint = None
+        #: SHA-256 of the checkpoint's weights (None for a model given in memory)
+        self.checkpoint_digest: str | None = None
         if model is None:
             path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
             if not path.is_file():
@@ -63,8 +69,9 @@ class PlaceRecognizer:
                 raise CheckpointError(f"{path}: checkpoint not found{hint}")
             from place_recognition.checkpoint import load_model
 
-            model, _, _ = load_model(path, device=self.config.device)
+            model, _, ck_meta = load_model(path, device=self.device)
             self.checkpoint = path
+            self.checkpoint_digest = ck_meta.get("weights_digest")
         self.model = model
         if hasattr(model, "eval"):
             model.eval()
@@ -187,7 +194,7 @@ class PlaceRecognizer:
         import torch
 
         with torch.no_grad():
-            feats = self.model.encode_frames(torch.from_numpy(images).to(self.config.device))
+            feats = self.model.encode_frames(torch.from_numpy(images).to(self.device))
             out = self.model.frame_codes(feats)
         return out.detach().float().cpu().numpy()
 
@@ -195,7 +202,7 @@ class PlaceRecognizer:
         import torch
 
         with torch.no_grad():
-            out = self.model.aggregate_codes(torch.from_numpy(codes).to(self.config.device))
+            out = self.model.aggregate_codes(torch.from_numpy(codes).to(self.device))
         out = out.detach().float().cpu().numpy()
         if out.ndim != 2 or not np.all(np.isfinite(out)):
             raise CheckpointError(f"model returned {out.shape} (non-finite or wrong shape)")
@@ -205,7 +212,7 @@ class PlaceRecognizer:
         import torch
 
         with torch.no_grad():
-            x = torch.from_numpy(batch).to(self.config.device)
+            x = torch.from_numpy(batch).to(self.device)
             out = self.model(x)
         out = out.detach().float().cpu().numpy() if hasattr(out, "detach") else np.asarray(out)
         if out.ndim != 2 or len(out) != len(batch) or not np.all(np.isfinite(out)):
@@ -294,9 +301,10 @@ class PlaceRecognizer:
     # ---- persistence -------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
         """Write the database (descriptors, keys, RCS values, config) to one .npz, atomically."""
+        from place_recognition.outputs import check_output_file
         from radarslam.io.atomic import atomic_open
 
-        path = Path(path)
+        path = check_output_file(path)
         try:
             keys_json = json.dumps(self._keys)
         except TypeError:
@@ -310,7 +318,9 @@ class PlaceRecognizer:
             "config": self.config.model_dump(mode="json"),
             "seq_len": self.seq_len,
             "descriptor_dim": int(dim),
-            "checkpoint": str(self.checkpoint) if self.checkpoint else None,
+            # absolute, so that the database can be queried from any working directory
+            "checkpoint": str(Path(self.checkpoint).resolve()) if self.checkpoint else None,
+            "checkpoint_digest": self.checkpoint_digest,
         }
         with atomic_open(path, "wb") as fh:
             np.savez_compressed(
@@ -323,6 +333,13 @@ class PlaceRecognizer:
             )
         return path
 
+    @property
+    def output_dim(self) -> int | None:
+        """Descriptor length the model produces (None when the model does not say)."""
+        cfg = getattr(self.model, "cfg", None)
+        fn = getattr(cfg, "output_dim", None)
+        return int(fn()) if callable(fn) else None
+
     @classmethod
     def load(
         cls,
@@ -331,37 +348,142 @@ class PlaceRecognizer:
         checkpoint: str | Path | None = None,
         config: PlaceRecognizerConfig | None = None,
     ) -> PlaceRecognizer:
-        """A recognizer holding a saved database (its stored config unless ``config`` is given)."""
+        """A recognizer holding a saved database (its stored config unless ``config`` is given).
+
+        The model is the database's recorded checkpoint unless ``model`` or ``checkpoint`` is
+        given; a model whose descriptors cannot be compared with the stored ones (another length,
+        or other weights when both checkpoints' digests are known) is a CheckpointError.
+        """
         path = Path(path)
         if not path.is_file():
             raise DataError(f"{path}: place database not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-            meta = json.loads(str(arrays["meta_json"]))
-            keys = json.loads(str(arrays["keys_json"]))
-        except (OSError, ValueError, KeyError, EOFError) as exc:
-            raise DataError(f"{path}: not a place database ({exc})") from None
-        if meta.get("format") != DB_FORMAT:
-            raise DataError(f"{path}: not a place database (format {meta.get('format')!r})")
+        db = _read_database(path)
+        meta = db.meta
         if config is None:
             config = build_config(PlaceRecognizerConfig, meta["config"], f"{path} (config)")
-        if model is None and checkpoint is None and meta.get("checkpoint"):
-            checkpoint = meta["checkpoint"]
+        recorded = meta.get("checkpoint")
+        if model is None and checkpoint is None and recorded:
+            checkpoint = Path(recorded)
+            if not checkpoint.is_file():
+                raise CheckpointError(
+                    f"{path}: recorded checkpoint {recorded} not found; pass --checkpoint"
+                )
         rec = cls(model=model, checkpoint=checkpoint, config=config)
-        desc, offsets = arrays["descriptors"], arrays["offsets"]
-        if len(keys) != len(offsets) - 1 or (len(keys) and len(desc) != len(keys)):
-            raise DataError(f"{path}: {len(keys)} keys, {len(desc)} descriptors, inconsistent")
-        if rec.seq_len != meta.get("seq_len"):
+        used = str(rec.checkpoint) if rec.checkpoint is not None else "the given model"
+        built = recorded or "an unrecorded model"
+        want, have = meta.get("checkpoint_digest"), rec.checkpoint_digest
+        if want and have and want != have:
             raise CheckpointError(
-                f"{path}: database built with seq_len={meta.get('seq_len')}, model uses "
-                f"{rec.seq_len}"
+                f"{path}: built with checkpoint {built} (weights {want[:12]}), queried with {used} "
+                f"(weights {have[:12]}); descriptors of different weights are not comparable "
+                "(rebuild the database or pass the checkpoint it was built with)"
             )
-        rcs = arrays["rcs01"]
-        for i, key in enumerate(keys):
-            key = tuple(key) if isinstance(key, list) else key
-            rec.add_descriptor(desc[i], rcs[offsets[i] : offsets[i + 1]], key)
+        if rec.seq_len != meta["seq_len"]:
+            raise CheckpointError(
+                f"{path}: database built with seq_len={meta['seq_len']}, model uses {rec.seq_len}"
+            )
+        dim = db.descriptors.shape[1] if len(db.keys) else None
+        out_dim = rec.output_dim
+        if dim is not None and out_dim is not None and dim != out_dim:
+            raise CheckpointError(
+                f"{path}: holds {dim}-D descriptors (built with {built}) but {used} makes "
+                f"{out_dim}-D descriptors; pass the checkpoint it was built with"
+            )
+        for i, key in enumerate(db.keys):
+            rcs = db.rcs01[db.offsets[i] : db.offsets[i + 1]]
+            rec.add_descriptor(db.descriptors[i], rcs, key)
         return rec
+
+
+@dataclass(frozen=True)
+class _StoredDatabase:
+    meta: dict
+    keys: list
+    descriptors: np.ndarray  # (N, D) float32; (0, 0) when empty
+    rcs01: np.ndarray  # (sum of points,) float32
+    offsets: np.ndarray  # (N + 1,) int64
+
+
+def _read_database(path: Path) -> _StoredDatabase:
+    """Read and check a saved database; every defect is a one-line DataError naming ``path``."""
+    from place_recognition.dataset import read_npz
+
+    try:
+        arrays = read_npz(path)
+    except ValueError as exc:
+        raise DataError(f"{path}: not a place database ({exc})") from None
+    for name in ("meta_json", "keys_json"):
+        if name not in arrays:
+            raise DataError(f"{path}: not a place database (no '{name}' array)")
+    try:
+        meta = json.loads(str(arrays["meta_json"]))
+        keys = json.loads(str(arrays["keys_json"]))
+    except ValueError as exc:
+        raise DataError(f"{path}: not a place database (metadata is not JSON: {exc})") from None
+    if not isinstance(meta, dict):
+        raise DataError(f"{path}: metadata must be a JSON object, got {type(meta).__name__}")
+    if meta.get("format") != DB_FORMAT:
+        raise DataError(f"{path}: not a place database (format {meta.get('format')!r})")
+    lacking = [k for k in ("config", "seq_len") if k not in meta]
+    if lacking:
+        raise DataError(f"{path}: metadata lacks {lacking}")
+    if not isinstance(meta["config"], dict):
+        raise DataError(f"{path}: metadata 'config' must be a JSON object")
+    seq_len = meta["seq_len"]
+    if isinstance(seq_len, bool) or not isinstance(seq_len, int) or seq_len < 1:
+        raise DataError(f"{path}: metadata seq_len must be a positive integer, got {seq_len!r}")
+    for name in ("checkpoint", "checkpoint_digest"):
+        if meta.get(name) is not None and not isinstance(meta[name], str):
+            raise DataError(f"{path}: metadata '{name}' must be a string or null")
+    if not isinstance(keys, list):
+        raise DataError(f"{path}: keys must be a JSON list, got {type(keys).__name__}")
+    missing = [k for k in ("descriptors", "rcs01", "offsets") if k not in arrays]
+    if missing:
+        raise DataError(f"{path}: missing array(s) {missing}")
+    desc, rcs, offsets = arrays["descriptors"], arrays["rcs01"], arrays["offsets"]
+    n = len(keys)
+    if desc.ndim != 2 or not np.issubdtype(desc.dtype, np.number):
+        raise DataError(
+            f"{path}: descriptors must be an (N, D) number array, got {desc.shape} {desc.dtype}"
+        )
+    if len(desc) != n or (n and desc.shape[1] == 0):
+        raise DataError(f"{path}: {n} keys, {len(desc)} descriptors, inconsistent")
+    dim = meta.get("descriptor_dim")
+    if n and dim is not None and dim != desc.shape[1]:
+        raise DataError(
+            f"{path}: metadata says {dim}-D descriptors, the array is {desc.shape[1]}-D"
+        )
+    if not np.all(np.isfinite(desc)):
+        raise DataError(f"{path}: descriptors contain NaN or infinity")
+    if rcs.ndim != 1 or not np.issubdtype(rcs.dtype, np.number):
+        raise DataError(f"{path}: rcs01 must be a 1-D number array, got {rcs.shape} {rcs.dtype}")
+    if not np.all(np.isfinite(rcs)):
+        raise DataError(f"{path}: rcs01 contains NaN or infinity")
+    if offsets.ndim != 1 or not np.issubdtype(offsets.dtype, np.integer):
+        raise DataError(
+            f"{path}: offsets must be a 1-D integer array, got {offsets.shape} {offsets.dtype}"
+        )
+    if len(offsets) != n + 1:
+        raise DataError(f"{path}: {n} keys but {len(offsets)} offsets (expected {n + 1})")
+    if offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != len(rcs):
+        raise DataError(
+            f"{path}: offsets must start at 0, never decrease and end at the number of RCS "
+            f"values ({len(rcs)}); got {offsets[0]} .. {offsets[-1]}"
+        )
+    out_keys = [tuple(k) if isinstance(k, list) else k for k in keys]
+    try:
+        unique = len(set(out_keys)) == len(out_keys)
+    except TypeError:  # a JSON object, or a list nested in a list
+        raise DataError(f"{path}: keys must be strings, numbers or flat lists") from None
+    if not unique:
+        raise DataError(f"{path}: duplicate keys")
+    return _StoredDatabase(
+        meta,
+        out_keys,
+        desc.astype(np.float32, copy=False),
+        rcs.astype(np.float32, copy=False),
+        offsets.astype(np.int64),
+    )
 
 
 def iter_scene_sequences(recognizer: PlaceRecognizer, reader, scene):

@@ -48,6 +48,7 @@ from radarslam.errors import CheckpointError, ConfigError, DataError
 from radarslam.io.atomic import write_json_atomic
 
 from .checkpoint import read_checkpoint, save_checkpoint
+from .config import check_device_name
 from .models import ModelConfig, build_model
 
 # Train-config fields that may change between a run and its resumption: they do not alter what
@@ -114,12 +115,7 @@ class TrainConfig(StrictModel):
                 f"select_after_epoch={self.select_after_epoch} must be below epochs={self.epochs} "
                 "(no epoch could be selected as best)"
             )
-        if self.device != "auto" and not (
-            self.device == "cpu"
-            or self.device == "cuda"
-            or (self.device.startswith("cuda:") and self.device[5:].isdigit())
-        ):
-            raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
+        check_device_name(self.device)
         if self.amp_bf16 and self.device == "cpu":
             raise ValueError("amp_bf16 needs a CUDA device (device is 'cpu')")
         if 1 not in self.recall_ns or any(n < 1 for n in self.recall_ns):
@@ -160,6 +156,11 @@ class TrainResult:
 
 
 def resolve_device(name: str, local_rank: int = 0) -> torch.device:
+    """``auto`` / ``cpu`` / ``cuda`` / ``cuda:N`` -> a usable torch device, else ConfigError."""
+    try:
+        check_device_name(name)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name.startswith("cuda"):
@@ -167,6 +168,9 @@ def resolve_device(name: str, local_rank: int = 0) -> torch.device:
             raise ConfigError(f"device {name!r} requested but CUDA is not available")
         if name == "cuda":
             name = f"cuda:{local_rank}"
+        count = torch.cuda.device_count()
+        if int(name[5:]) >= count:
+            raise ConfigError(f"device {name!r} requested but only {count} CUDA device(s) exist")
     return torch.device(name)
 
 
@@ -505,11 +509,16 @@ def train(
     """Train ``model_cfg`` on prepared data; writes ``best.pt``, ``last.pt`` and ``history.json``.
 
     ``resume``: continue from ``out_dir/last.pt`` (its configs must match, except the fields in
-    RESUMABLE_CHANGES); a missing or mismatched last checkpoint is a CheckpointError.
+    RESUMABLE_CHANGES); a missing or mismatched last checkpoint is a CheckpointError. Without
+    ``resume`` a previous run's ``best.pt``, ``last.pt`` and ``history.json`` in ``out_dir`` are
+    deleted before the first epoch, so that the directory never mixes two runs (``radarslam pr
+    train`` refuses such a directory unless ``--overwrite`` or ``--resume`` is given).
     """
     from tqdm.auto import tqdm
 
-    out_dir = Path(out_dir)
+    from .outputs import check_output_dir
+
+    out_dir = check_output_dir(out_dir)
     last_path, best_path = out_dir / "last.pt", out_dir / "best.pt"
     _check_data(data, model_cfg)
     dist_info = _setup_distributed(train_cfg.device)
@@ -588,6 +597,10 @@ def train(
             return db, tr, desc[len(desc) - len(val_frames) :]
 
         cache: tuple[torch.Tensor, torch.Tensor | None, torch.Tensor] | None = None
+        if not resume and is_main:
+            # a new run: the previous run's outputs must not survive next to this one's
+            for stale in (best_path, last_path, out_dir / "history.json"):
+                stale.unlink(missing_ok=True)
         t_start = time.perf_counter()
         for epoch in range(start_epoch, train_cfg.epochs + 1):
             t0 = time.perf_counter()

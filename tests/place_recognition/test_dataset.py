@@ -86,3 +86,54 @@ def test_split_errors():
         make_split(pos, t, names, SplitConfig(split_day=50))
     with pytest.raises(DataError, match="positions"):
         make_split(pos[:3], t, names, SplitConfig())
+
+
+# ---------------------------------------------------------------------------------------------
+# a prepared directory whose files disagree is refused
+
+
+def _copy_prepared(src: Path, dst: Path) -> Path:
+    import shutil
+
+    return Path(shutil.copytree(src, dst / "mini"))
+
+
+def _rewrite_npz(path: Path, **arrays) -> None:
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    data.update(arrays)
+    np.savez(path, **data)
+
+
+def test_load_prepared_refuses_stale_or_damaged_stages(mini_prepared, tmp_path):
+    from place_recognition.dataset import load_prepared
+
+    # a split made with another config (e.g. left over from an interrupted --overwrite)
+    root = _copy_prepared(mini_prepared, tmp_path / "a")
+    _rewrite_npz(root / "split.npz", config_hash=np.array("0123456789abcdef"))
+    with pytest.raises(DataError, match=r"split\.npz: stale stage .*prepare --overwrite"):
+        load_prepared(root)
+    # same hash, but indices beyond the frames (a file copied from a larger cache)
+    root = _copy_prepared(mini_prepared, tmp_path / "b")
+    _rewrite_npz(root / "split.npz", test=np.array([3, 40]))
+    with pytest.raises(DataError, match=r"split\.npz: 'test' indexes frames outside \[0, 16\)"):
+        load_prepared(root)
+    # a truncated stage file
+    root = _copy_prepared(mini_prepared, tmp_path / "c")
+    blob = (root / "images.npz").read_bytes()
+    (root / "images.npz").write_bytes(blob[: len(blob) // 2])
+    with pytest.raises(DataError, match=r"images\.npz: unreadable \(damaged or truncated"):
+        load_prepared(root)
+
+
+def test_split_summary_of_a_garbled_file(mini_prepared, tmp_path):
+    from place_recognition.dataset import split_summary
+
+    root = _copy_prepared(mini_prepared, tmp_path)
+    assert split_summary(root)["frames"] == 16
+    (root / "split.json").write_bytes(b'{"database": 28, "tra\x01')
+    with pytest.raises(DataError, match=r"split\.json: unreadable"):
+        split_summary(root)
+    (root / "split.json").write_text("[1, 2]")
+    with pytest.raises(DataError, match=r"split\.json: expected a JSON object"):
+        split_summary(root)

@@ -267,3 +267,19 @@ def test_descriptor_dims_are_consistent_with_formula():
         for _ in range(len(cfg.widths) + 1):
             side = math.floor(side / 2)
         assert cfg.frame_feature_dim() == cfg.widths[-1] * side * side
+
+
+def test_non_checkpoint_files_get_a_short_reason(tmp_path):
+    import os
+
+    random_bytes = tmp_path / "random.pt"
+    random_bytes.write_bytes(os.urandom(2000).replace(b"PK", b"pk"))
+    with pytest.raises(CheckpointError) as err:
+        load_model(random_bytes)
+    assert str(err.value) == f"{random_bytes}: not a radarslam checkpoint (not a torch zip archive)"
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(
+        CheckpointError, match=r"empty\.pt: not a readable checkpoint \(empty file\)"
+    ):
+        load_model(empty)

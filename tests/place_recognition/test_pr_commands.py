@@ -67,3 +67,50 @@ def test_cli_errors(tmp_path):
     with pytest.raises(DataError, match="does not exist"):
         runner.invoke(app, ["pr", "eval", str(tmp_path / "x"), "--baseline", "m2dp"],
                       catch_exceptions=False)  # fmt: skip
+
+
+def _raises(exc_type, message, args):
+    with pytest.raises(exc_type, match=message):
+        runner.invoke(app, args, catch_exceptions=False)
+
+
+def test_cli_checks_outputs_and_options_up_front(tmp_path):
+    """Each of these fails at once, before any data, checkpoint or database is read."""
+    from radarslam.errors import CheckpointError, ConfigError
+
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    nothing = str(tmp_path / "no_such_cache")
+    build = ["pr", "build-db", "--dataroot", nothing, "--scene", "scene-0001", "--out"]
+    _raises(ConfigError, "output file is an existing directory", [*build, str(tmp_path)])
+    _raises(ConfigError, "afile: output directory is an existing file",
+            [*build, str(afile / "db.npz")])  # fmt: skip
+    _raises(ConfigError, "afile: output directory is an existing file",
+            ["pr", "eval", nothing, "--baseline", "m2dp", "--out", str(afile)])  # fmt: skip
+    _raises(ConfigError, "afile: output directory is an existing file",
+            ["pr", "train", nothing, "--out", str(afile)])  # fmt: skip
+    _raises(ConfigError, "afile: output directory is an existing file",
+            ["pr", "prepare", nothing, "--out", str(afile)])  # fmt: skip
+    _raises(ConfigError, r"--jobs -2: must be >= 1",
+            ["pr", "prepare", nothing, "--jobs", "-2", "--out", str(tmp_path)])  # fmt: skip
+    for split in ("database", "train"):
+        _raises(ConfigError, f"--split '{split}': choose one of val, test",
+                ["pr", "eval", nothing, "--baseline", "m2dp", "--split", split])  # fmt: skip
+    _raises(ConfigError, "-k 0: must be >= 1",
+            ["pr", "query", str(tmp_path / "none.npz"), "--dataroot", nothing, "--scene", "s",
+             "-k", "0"])  # fmt: skip
+    # a previous run's checkpoints are neither mixed with a new run's nor silently replaced
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "best.pt").write_bytes(b"old")
+    _raises(ConfigError, r"run: holds a previous run \(best\.pt\); pass --resume .* --overwrite",
+            ["pr", "train", nothing, "--out", str(run)])  # fmt: skip
+    _raises(CheckpointError, r"last\.pt: nothing to resume",
+            ["pr", "train", nothing, "--out", str(run), "--resume"])  # fmt: skip
+    _raises(ConfigError, "not both",
+            ["pr", "train", nothing, "--out", str(run), "--resume", "--overwrite"])  # fmt: skip
+    # with --overwrite the run goes on (and fails here on the missing cache, not on OUT)
+    from radarslam.errors import DataError
+
+    _raises(DataError, "no_such_cache: prepared directory does not exist",
+            ["pr", "train", nothing, "--out", str(run), "--overwrite"])  # fmt: skip

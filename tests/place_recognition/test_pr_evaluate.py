@@ -107,3 +107,13 @@ def test_baselines_on_prepared_mini(mini_prepared):
         assert 0.0 <= r.recall[1] <= r.recall[5] <= 1.0
         again = evaluate_method(data, label, fn, cfg, "test")[0]
         assert again.recall == r.recall  # deterministic
+
+
+def test_only_held_out_splits_are_evaluated():
+    data = synthetic_data()
+    cfg = EvalConfig()
+    fn = descriptor_ranking_fn(data, lambda f: data.positions_xy[f], cfg)
+    for split in ("database", "train"):
+        with pytest.raises(ConfigError, match=f"split '{split}' cannot be evaluated"):
+            evaluate_method(data, "oracle", fn, cfg, split)
+    assert evaluate_method(data, "oracle", fn, cfg, "val")[0].split == "val"

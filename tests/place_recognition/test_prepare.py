@@ -98,3 +98,53 @@ def test_parallel_clouds_identical(mini_dataroot, mini_config, mini_prepared, tm
     assert json.loads((par / "dpr.json").read_text()) == json.loads(
         (mini_prepared / "dpr.json").read_text()
     )
+
+
+def test_damaged_stage_files_are_recomputed(mini_dataroot, mini_config, tmp_path):
+    cfg = mini_config(mini_dataroot)
+    root = prepare(cfg, tmp_path, progress=False)
+    # a truncated points.npz (images.npz intact) and a garbled split.json
+    blob = (root / "points.npz").read_bytes()
+    (root / "points.npz").write_bytes(blob[: len(blob) // 3])
+    (root / "split.json").write_bytes(b'{"database": 1\x00')
+    stages = []
+    prepare(cfg, tmp_path, progress=False, on_stage=stages.append)
+    assert stages == ["clouds", "split"]
+    data = load_prepared(root)
+    assert len(data.rcs) == len(data) == 16
+    assert json.loads((root / "split.json").read_text())["frames"] == 16
+
+
+def test_failed_prepare_leaves_no_mixed_cache(mini_dataroot, mini_config, mini_prepared, tmp_path):
+    import shutil
+
+    # a fresh directory: nothing is written, not even config.yaml
+    source = {"dataroot": str(mini_dataroot), "versions": ["v1.0-mini"], "location": "mars"}
+    mars = mini_config(mini_dataroot, source=source)
+    with pytest.raises(DataError, match="no scene at location 'mars'"):
+        prepare(mars, tmp_path / "fresh", progress=False)
+    assert not (tmp_path / "fresh" / "mini").exists()
+    # --overwrite of a complete cache with a config that fails: the old stages are gone and the
+    # old config.yaml stays, so the directory can never be loaded as a mix of two configs
+    root = tmp_path / "cache" / "mini"
+    shutil.copytree(mini_prepared, root)
+    before = (root / "config.yaml").read_text()
+    with pytest.raises(DataError, match="mars"):
+        prepare(mars, tmp_path / "cache", progress=False, overwrite=True)
+    assert (root / "config.yaml").read_text() == before
+    assert sorted(p.name for p in root.iterdir()) == ["config.yaml"]
+    with pytest.raises(DataError, match=r"frames\.npz: missing"):
+        load_prepared(root)
+
+
+def test_prepare_output_and_jobs_errors(mini_dataroot, mini_config, tmp_path):
+    cfg = mini_config(mini_dataroot)
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ConfigError, match="afile: output directory is an existing file"):
+        prepare(cfg, tmp_path / "afile", progress=False)
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "mini").write_text("x")
+    with pytest.raises(ConfigError, match=r"mini: output directory is an existing file"):
+        prepare(cfg, tmp_path / "out", progress=False)
+    with pytest.raises(ConfigError, match="jobs=0"):
+        prepare(cfg, tmp_path, progress=False, jobs=0)

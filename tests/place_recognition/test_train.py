@@ -425,3 +425,37 @@ def test_train_weights_two_stage(data, tmp_path, monkeypatch):
     (tmp_path / "se.yaml").write_text(yaml.safe_dump(se.model_dump(mode="json")))
     argv[3] = str(tmp_path / "se.yaml")
     assert tool.main(argv) == 2  # an SE model has no TE to train in a second stage
+
+
+# ---------------------------------------------------------------------------------------------
+# output directory
+
+
+def test_new_run_removes_the_previous_runs_outputs(data, tmp_path, monkeypatch):
+    import place_recognition.train as train_module
+
+    for name in ("best.pt", "last.pt", "history.json"):
+        (tmp_path / name).write_text("previous run")
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    # interrupted in epoch 1: the old best.pt must not remain next to the new run's files
+    monkeypatch.setattr(train_module, "mine_triplets", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train(TrainConfig(**{**FAST, "epochs": 1}), TINY, data, tmp_path, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_output_directory_and_device_errors(data, tmp_path):
+    from place_recognition.train import resolve_device
+
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(ConfigError, match="afile: output directory is an existing file"):
+        train(TrainConfig(**FAST), TINY, data, afile, progress=False)
+    with pytest.raises(ConfigError, match="device must be auto, cpu, cuda or cuda:N, got 'gpu'"):
+        resolve_device("gpu")
+    if torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="CUDA device"):
+            resolve_device(f"cuda:{torch.cuda.device_count()}")
