@@ -39,12 +39,54 @@ app.add_typer(pr_app, name="pr")
 # END COMMANDS
 
 
+def _raise_interrupt(signum, frame) -> None:
+    """SIGTERM handler: behave like Ctrl-C, so atomic writes remove their temporary files."""
+    import os
+    import signal
+
+    if os.getpid() != _MAIN_PID:  # a forked worker inherited it: die the default way
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+        return
+    raise KeyboardInterrupt
+
+
+_MAIN_PID: int | None = None
+
+
+def _install_sigterm_handler() -> None:
+    import os
+    import signal
+
+    global _MAIN_PID
+    _MAIN_PID = os.getpid()
+    try:
+        signal.signal(signal.SIGTERM, _raise_interrupt)
+    except ValueError:  # not the main thread: leave SIGTERM alone
+        pass
+
+
+def _was_interrupted(exc: BaseException) -> bool:
+    """Whether typer turned a KeyboardInterrupt into this exit (it exits 130 silently)."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
 def main() -> None:
     """Console entry point: user errors become one line on stderr and exit status 2.
 
     typer's standalone mode already turns usage errors into a usage line (exit 2); what reaches
-    this handler is a :class:`RadarSlamError` raised by a command.
+    this handler is a :class:`RadarSlamError` raised by a command, an OSError no command turned
+    into one (printed as one line too), or an interruption: Ctrl-C or SIGTERM print
+    ``interrupted`` and exit with status 130.
     """
+    _install_sigterm_handler()
     try:
         app()
     except RadarSlamError as exc:
@@ -53,3 +95,11 @@ def main() -> None:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
+    except SystemExit as exc:
+        if exc.code == 130 and _was_interrupted(exc):
+            print("interrupted", file=sys.stderr)
+        raise
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename is not None else ""
+        print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
+        sys.exit(2)

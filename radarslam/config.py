@@ -6,6 +6,7 @@ YAML key fails loudly instead of being silently ignored.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -23,15 +24,50 @@ class StrictModel(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
-def _format_validation_error(source: str, exc: ValidationError) -> str:
-    parts = []
+def _got(value: Any) -> str:
+    """`` (got <value>)`` for a scalar or short input; nothing for a whole section."""
+    if isinstance(value, dict):
+        return ""
+    text = repr(value)
+    return f" (got {text if len(text) <= 80 else text[:77] + '...'})"
+
+
+def _override_for(loc: tuple, overrides: list[tuple[list[str], str]]) -> tuple[str | None, bool]:
+    """The last override that set ``loc`` or a section holding it; else (None, whether an override
+    changed something inside ``loc``, a section-level error)."""
+    keys = [str(p) for p in loc]
+    for path, text in reversed(overrides):
+        if keys[: len(path)] == path:
+            return text, False
+    inside = [text for path, text in overrides if path[: len(keys)] == keys]
+    return (inside[-1], True) if inside else (None, False)
+
+
+def _format_validation_error(
+    source: str, exc: ValidationError, overrides: list[str] | None = None
+) -> str:
+    """One line: errors grouped by where the value came from, ``source`` (the file) or the
+    ``key=value`` override that set it."""
+    parsed = []
+    for text in overrides or []:
+        with contextlib.suppress(ConfigError):
+            parsed.append((parse_override(text)[0], text))
+    groups: dict[str, list[str]] = {}
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "<root>"
         if err["type"] == "extra_forbidden":
-            parts.append(f"unknown key '{loc}'")
+            part = f"unknown key '{loc}'"
         else:
-            parts.append(f"'{loc}': {err['msg']} (got {err.get('input')!r})")
-    return f"{source}: " + "; ".join(parts)
+            part = f"'{loc}': {err['msg']}{_got(err.get('input'))}"
+        text, section = _override_for(tuple(err["loc"]), parsed)
+        if text is None:
+            where = source
+        elif section and source != "config overrides":
+            where = f"{source} with override {text!r}"
+        else:
+            where = f"override {text!r}"
+        groups.setdefault(where, []).append(part)
+    return "; ".join(f"{where}: " + "; ".join(parts) for where, parts in groups.items())
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -71,7 +107,13 @@ def read_yaml(path: str | Path) -> dict:
     if not path.is_file():
         raise ConfigError(f"{path}: config file does not exist")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a UTF-8 text file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
@@ -81,11 +123,15 @@ def read_yaml(path: str | Path) -> dict:
     return data
 
 
-def build_config(model: type[M], data: dict, source: str = "config") -> M:
+def build_config(
+    model: type[M], data: dict, source: str = "config", overrides: list[str] | None = None
+) -> M:
+    """Validate ``data``; errors name ``source``, or the override (of ``overrides``, already
+    applied to ``data``) that set the offending key."""
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_validation_error(source, exc)) from None
+        raise ConfigError(_format_validation_error(source, exc, overrides)) from None
 
 
 def load_config(
@@ -94,7 +140,8 @@ def load_config(
     """Load ``model`` from a YAML file (or its defaults when ``path`` is None), then overrides."""
     data = read_yaml(path) if path is not None else {}
     data = apply_overrides(data, overrides)
-    return build_config(model, data, source=str(path) if path else "config overrides")
+    source = str(path) if path else "config overrides"
+    return build_config(model, data, source=source, overrides=overrides)
 
 
 def dump_config(cfg: BaseModel) -> str:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from radarslam.config import StrictModel
 from radarslam.errors import DataError
@@ -23,7 +23,8 @@ from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth
 from radarslam.eval.metrics import align_se2, ate, drift, path_lengths_m, rpe, to_xy_yaw
 from radarslam.io.atomic import write_json_atomic
 from radarslam.io.trajectory import read_tum
-from radarslam.slam.records import read_loops_csv
+from radarslam.slam.outputs import check_session_name
+from radarslam.slam.records import read_loops_csv_numbered
 
 KINDS = ("odometry", "slam")
 _PREFIX = {"slam": "poses_", "odometry": "odometry_", "gt": "gt_"}
@@ -36,6 +37,15 @@ class EvalConfig(StrictModel):
     max_time_diff_us: int = Field(10_000, ge=0)  # association of estimate and ground truth
     loops: LoopEvalConfig = LoopEvalConfig()
     plots: bool = True
+
+    @field_validator("drift_segment_lengths_m")
+    @classmethod
+    def _segment_lengths(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not v:
+            raise ValueError("needs at least one segment length")
+        if not all(np.isfinite(x) and x > 0 for x in v):
+            raise ValueError("segment lengths must be finite and > 0")
+        return v
 
 
 @dataclass
@@ -105,60 +115,87 @@ class ResultsFolder:
 
 
 def read_results(results_dir: str | Path) -> ResultsFolder:
+    """The sessions ``run.json`` lists, in its order, with their trajectory files.
+
+    ``run.json`` is written last (and the folder as a whole, see
+    :func:`radarslam.slam.outputs.write_results`): a folder without it is incomplete. Files of
+    sessions it does not list are not read. Every listed session needs ``poses_<s>.tum`` and
+    ``gt_<s>.tum``; ``odometry_<s>.tum`` is optional.
+    """
     d = Path(results_dir)
     if not d.is_dir():
         raise DataError(f"{d}: results folder does not exist")
-    found: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
-    for kind, prefix in _PREFIX.items():
-        for p in sorted(d.glob(f"{prefix}*.tum")):
-            session = p.stem[len(prefix) :]
-            found.setdefault(session, {})[kind] = read_tum(p)
-    if not found:
-        raise DataError(f"{d}: no poses_*.tum, odometry_*.tum or gt_*.tum files")
-    no_gt = [s for s, k in found.items() if "gt" not in k]
-    if no_gt:
-        raise DataError(f"{d}: no ground truth gt_<session>.tum for sessions {no_gt}")
-    no_est = [s for s, k in found.items() if not ({"slam", "odometry"} & set(k))]
-    if no_est:
-        raise DataError(f"{d}: sessions {no_est} have ground truth but no estimate")
-    order = _session_order(d, found)
-    loops = d / "loops.csv"
-    return ResultsFolder(d, order, found, loops if loops.is_file() else None, _components(d, found))
-
-
-def _components(d: Path, found: dict) -> list[list[str]] | None:
     run = d / "run.json"
     if not run.is_file():
-        return None
-    comps = json.loads(run.read_text()).get("components")
+        if not any(any(d.glob(f"{prefix}*.tum")) for prefix in _PREFIX.values()):
+            raise DataError(f"{d}: no poses_*.tum, odometry_*.tum or gt_*.tum files")
+        raise DataError(
+            f"{d}: no run.json: not a complete results folder (was the run interrupted?)"
+        )
+    meta = _read_run_json(run)
+    sessions = meta.get("sessions")
+    if (
+        not isinstance(sessions, list)
+        or not sessions
+        or not all(isinstance(s, str) and s for s in sessions)
+    ):
+        raise DataError(f"{run}: 'sessions' must be a non-empty list of names")
+    if len(set(sessions)) != len(sessions):
+        raise DataError(f"{run}: 'sessions' lists a session twice: {sessions}")
+    for s in sessions:
+        try:
+            check_session_name(s)  # names make file names: no path separators
+        except DataError as exc:
+            raise DataError(f"{run}: {exc}") from None
+    found: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for s in sessions:
+        found[s] = {}
+        for kind, prefix in _PREFIX.items():
+            p = d / f"{prefix}{s}.tum"
+            if p.is_file():
+                found[s][kind] = read_tum(p)
+            elif kind != "odometry":  # SLAM poses and ground truth are always written
+                raise DataError(f"{p}: missing (run.json lists session {s!r})")
+    return ResultsFolder(
+        d,
+        sessions,
+        found,
+        (d / "loops.csv") if (d / "loops.csv").is_file() else None,
+        _components(run, meta, sessions),
+    )
+
+
+def _read_run_json(run: Path) -> dict:
+    try:
+        meta = json.loads(run.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise DataError(f"{run}: not a UTF-8 text file") from None
+    except json.JSONDecodeError as exc:
+        raise DataError(f"{run}:{exc.lineno}: invalid JSON ({exc.msg})") from None
+    except OSError as exc:
+        raise DataError(f"{run}: cannot read ({exc.strerror})") from None
+    if not isinstance(meta, dict):
+        raise DataError(f"{run}: not a JSON object with a 'sessions' list")
+    return meta
+
+
+def _components(run: Path, meta: dict, sessions: list[str]) -> list[list[str]] | None:
+    comps = meta.get("components")
     if comps is None:
         return None
-    if not isinstance(comps, list) or not all(
-        isinstance(c, list) and all(isinstance(s, str) and s in found for s in c) for c in comps
+    if (
+        not isinstance(comps, list)
+        or not comps
+        or not all(
+            isinstance(c, list) and c and all(isinstance(s, str) and s in sessions for s in c)
+            for c in comps
+        )
     ):
-        raise DataError(f"{run}: 'components' must be lists of session names with trajectories")
+        raise DataError(
+            f"{run}: 'components' must be a non-empty list of non-empty lists of the sessions "
+            "it lists"
+        )
     return comps
-
-
-def _session_order(d: Path, found: dict) -> list[str]:
-    run = d / "run.json"
-    if run.is_file():
-        try:
-            listed = json.loads(run.read_text()).get("sessions")
-        except (json.JSONDecodeError, AttributeError):
-            raise DataError(f"{run}: not a JSON object with a 'sessions' list") from None
-        if not isinstance(listed, list) or not all(isinstance(s, str) for s in listed):
-            raise DataError(f"{run}: 'sessions' must be a list of names")
-        missing = [s for s in listed if s not in found]
-        if missing:
-            raise DataError(f"{run}: sessions {missing} have no trajectory files")
-        return listed + sorted(s for s in found if s not in listed)
-
-    def first_t(s):
-        t = found[s]["gt"][0]
-        return int(t.min()) if t.size else 0
-
-    return sorted(found, key=lambda s: (first_t(s), s))
 
 
 def associate(
@@ -220,6 +257,9 @@ def evaluate_results(
     for s in folder.sessions:
         traj = folder.trajectories[s]
         gt_t, gt_p = traj["gt"]
+        if len(gt_t) < 2:
+            gt_file = folder.path / f"{_PREFIX['gt']}{s}.tum"
+            raise DataError(f"{gt_file}: {len(gt_t)} ground-truth poses; need at least 2")
         gt_for_loops[s] = SessionGroundTruth(gt_t, gt_p)
         per_session[s] = {}
         errors_t[s] = {}
@@ -256,23 +296,30 @@ def evaluate_results(
             for i, s in enumerate(p["session"])
             if kind != "slam" or folder.components is None or s in folder.components[0]
         ]
-        joint = ate(
-            np.concatenate([p["est"][i] for i in in_joint]),
-            np.concatenate([p["ref"][i] for i in in_joint]),
-            align="se2",
-        )
+        joint_rmse_m = None  # nothing to align jointly
+        if in_joint:
+            joint_rmse_m = ate(
+                np.concatenate([p["est"][i] for i in in_joint]),
+                np.concatenate([p["ref"][i] for i in in_joint]),
+                align="se2",
+            ).rmse_m
         run[kind] = {
             "num_sessions": len(p["ate"]),
             "num_poses": int(all_err.size),
             "ate_rmse_m": float(np.sqrt(np.mean(all_err**2))),
             "ate_first_rmse_m": float(np.sqrt(np.mean(first_err**2))),
-            "ate_joint_rmse_m": joint.rmse_m,
+            "ate_joint_rmse_m": joint_rmse_m,
             "joint_sessions": len(in_joint),
         }
     loop_metrics = None
     if folder.loops_path is not None:
+        numbered = read_loops_csv_numbered(folder.loops_path)
         loop_metrics = evaluate_loops(
-            read_loops_csv(folder.loops_path), gt_for_loops, cfg.loops, folder.sessions
+            [lc for _, lc in numbered],
+            gt_for_loops,
+            cfg.loops,
+            folder.sessions,
+            labels=[f"{folder.loops_path}:{line}" for line, _ in numbered],
         )
     report = EvalReport(
         results_dir=folder.path,

@@ -83,21 +83,26 @@ class _Lookup:
             s: {int(t): i for i, t in enumerate(np.asarray(g.timestamps_us))} for s, g in gt.items()
         }
 
-    def pose(self, key: NodeKey, timestamp_us: int) -> np.ndarray:
+    def pose(self, key: NodeKey, timestamp_us: int, where: str = "loop evaluation") -> np.ndarray:
         rows = self.row.get(key.session)
         if rows is None:
-            raise DataError(f"loop evaluation: no ground truth for session {key.session!r}")
+            raise DataError(
+                f"{where}: no ground truth for session {key.session!r} (not in this run)"
+            )
         i = rows.get(int(timestamp_us))
         if i is None:
             raise DataError(
-                f"loop evaluation: key frame {key} at {timestamp_us} us is not in the ground truth"
+                f"{where}: key frame {key} at {timestamp_us} us is not in the ground truth"
             )
         return self.xy_yaw[key.session][i]
 
 
-def judge_loop(loop: LoopCandidate, lookup: _Lookup, config: LoopEvalConfig) -> LoopJudgement:
-    gq = lookup.pose(loop.query, loop.query_timestamp_us)
-    gc = lookup.pose(loop.candidate, loop.candidate_timestamp_us)
+def judge_loop(
+    loop: LoopCandidate, lookup: _Lookup, config: LoopEvalConfig, where: str = "loop evaluation"
+) -> LoopJudgement:
+    """``where`` starts error messages (e.g. ``loops.csv:12``)."""
+    gq = lookup.pose(loop.query, loop.query_timestamp_us, where)
+    gc = lookup.pose(loop.candidate, loop.candidate_timestamp_us, where)
     gt_rel = se2_between(gc, gq)  # candidate_from_query
     est_rel = matrix_to_se2(np.asarray(loop.candidate_from_query, dtype=np.float64))
     err = se2_between(gt_rel, est_rel)
@@ -158,10 +163,17 @@ def evaluate_loops(
     gt: dict[str, SessionGroundTruth],
     config: LoopEvalConfig | None = None,
     session_order: Sequence[str] | None = None,
+    labels: Sequence[str] | None = None,
 ) -> LoopMetrics:
+    """``labels[i]`` names where loop ``i`` came from (``path:line``) in error messages."""
     config = config or LoopEvalConfig()
     lookup = _Lookup(gt)
-    judgements = [judge_loop(lp, lookup, config) for lp in loops]
+    if labels is not None and len(labels) != len(loops):
+        raise ValueError(f"{len(labels)} labels for {len(loops)} loops")
+    judgements = [
+        judge_loop(lp, lookup, config, labels[i] if labels is not None else "loop evaluation")
+        for i, lp in enumerate(loops)
+    ]
     accepted = [j for j in judgements if j.loop.accepted]
     correct = [j for j in accepted if j.correct]
     revisits = gt_revisit_queries(gt, config, session_order)

@@ -37,12 +37,13 @@ def odometry(
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import METHODS
     from radarslam.odometry.config import OdometryConfig
-    from radarslam.odometry.run import run_odometry, write_outputs
+    from radarslam.odometry.run import make_output_dir, run_odometry, write_outputs
 
     if method not in METHODS:
         raise ConfigError(f"--method {method!r}: choose one of {', '.join(METHODS)}")
     path = config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
     cfg = load_config(OdometryConfig, path, set_)
+    make_output_dir(out)  # a bad --out fails now, not after the run
     reader = NuScenesRadar(dataroot, version)
     names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
     infos = [reader.scene(n) for n in names] if names else reader.scenes()

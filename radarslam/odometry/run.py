@@ -172,6 +172,18 @@ def _progress(enabled: bool, infos: Sequence[SceneInfo], reader):
 # --- outputs -------------------------------------------------------------------------------------
 
 
+def make_output_dir(out_dir: str | Path) -> Path:
+    """Create the output folder (and its parents); DataError naming it when that fails."""
+    from radarslam.io.atomic import folder_error
+
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"{out}: cannot create results folder ({folder_error(out, exc)})") from None
+    return out
+
+
 def write_outputs(traj: OdometryTrajectory, out_dir: str | Path, config: OdometryConfig) -> dict:
     """Write per scene ``<scene>/{estimate,ground_truth}.{tum,kitti}`` and ``key_frames.csv``,
     plus ``config.yaml`` and ``summary.json`` (metrics per scene); returns the summary."""
@@ -179,8 +191,7 @@ def write_outputs(traj: OdometryTrajectory, out_dir: str | Path, config: Odometr
     from radarslam.io.atomic import write_json_atomic, write_text_atomic
     from radarslam.io.trajectory import write_kitti, write_tum
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_output_dir(out_dir)
     summary: dict = {"method": traj.method, "scenes": {}}
     for name in dict.fromkeys(traj.scene_names):
         sub = traj.scene(name)

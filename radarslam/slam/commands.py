@@ -30,7 +30,7 @@ def _slam_config(config: Path | None, overrides: list[str] | None, no_loops: boo
 
 
 def _select_scenes(reader, scenes: str | None, location: str | None, max_scenes: int | None):
-    from radarslam.errors import DataError
+    from radarslam.errors import ConfigError, DataError
 
     if scenes:
         chosen = [reader.scene(s.strip()) for s in scenes.split(",") if s.strip()]
@@ -45,6 +45,8 @@ def _select_scenes(reader, scenes: str | None, location: str | None, max_scenes:
             )
         chosen = reader.scenes_for_location(locations[0]) if locations else []
     if max_scenes is not None:
+        if max_scenes < 1:
+            raise ConfigError(f"--max-scenes {max_scenes}: must be at least 1")
         chosen = chosen[:max_scenes]
     if not chosen:
         raise DataError(f"{reader.dataroot}: no scene selected")
@@ -68,14 +70,14 @@ def run_slam(
     from rich.console import Console
 
     from radarslam.config import dump_config
-    from radarslam.io.atomic import write_json_atomic
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.slam.config import SlamConfig
-    from radarslam.slam.outputs import write_results
+    from radarslam.slam.outputs import check_results_dir, write_results
     from radarslam.slam.pipeline import SlamPipeline
 
     console = Console(stderr=True)
     config = config or SlamConfig()
+    check_results_dir(out)  # a bad --out fails now, not after the run
     reader = NuScenesRadar(dataroot, version)
     infos = _select_scenes(reader, scenes, location, max_scenes)
     console.print(
@@ -87,14 +89,6 @@ def run_slam(
     pipeline = SlamPipeline(reader, config, progress=progress)
     result = pipeline.run(infos)
     wall_s = time.perf_counter() - t0
-    write_results(
-        out,
-        result.sessions,
-        result.loops,
-        result.static_map,
-        config_yaml=dump_config(config),
-        components=[c.sessions for c in result.components],  # the anchored map first
-    )
     t = result.timings
     timing = {
         "wall_s": wall_s,
@@ -116,7 +110,15 @@ def run_slam(
         ],
         "loops": {"candidates": len(result.loops), "accepted": len(result.accepted_loops)},
     }
-    write_json_atomic(out / "timing.json", timing)
+    write_results(
+        out,
+        result.sessions,
+        result.loops,
+        result.static_map,
+        config_yaml=dump_config(config),
+        components=[c.sessions for c in result.components],  # the anchored map first
+        extra_json={"timing.json": timing},
+    )
     console.print(
         f"{t.frames} frames, {t.key_frames} key frames, {len(result.accepted_loops)} loops "
         f"accepted of {len(result.loops)} verified, {len(result.components)} map component(s); "
@@ -149,7 +151,9 @@ def run_command(
     location: Annotated[
         str | None, typer.Option(help="All scenes of one location, oldest first (multi-session).")
     ] = None,
-    max_scenes: Annotated[int | None, typer.Option(help="Use only the first N scenes.")] = None,
+    max_scenes: Annotated[
+        int | None, typer.Option(min=1, help="Use only the first N scenes.")
+    ] = None,
     config: Annotated[
         Path | None, typer.Option(help="SLAM YAML (default: configs/slam/default.yaml).")
     ] = None,
@@ -165,8 +169,10 @@ def run_command(
 ) -> None:
     """SLAM over one or several scenes (one map, one session per scene) -> results folder."""
     from radarslam.errors import DataError
+    from radarslam.slam.outputs import check_results_dir
 
     cfg = _slam_config(config, override, no_loops, checkpoint)
+    check_results_dir(out)  # before generating or reading any data
     if dataset == Dataset.synthetic:
         dataroot = dataroot or Path("data") / f"synthetic-{preset}"
         version = version or _ensure_synthetic(preset, dataroot, progress)
@@ -208,10 +214,13 @@ def demo_command(
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Generate the synthetic demo city, run multi-session SLAM on it, evaluate and plot."""
+    from radarslam.slam.outputs import check_results_dir
+
     dataroot = out / "data"
-    version = _ensure_synthetic(preset, dataroot, progress)
     cfg = _slam_config(None, override, False, None)
     results = out / "results"
+    check_results_dir(results)  # before generating the data
+    version = _ensure_synthetic(preset, dataroot, progress)
     run_slam(dataroot, version, results, config=cfg, progress=progress)
     typer.echo(
         f"results in {results}: trajectories (TUM/KITTI), loops.csv, metrics.json, map.ply, "

@@ -12,25 +12,48 @@
       plots/map_bev.png             the map in bird's-eye view
       pose_graph.g2o                (optional) the final graph
       metrics.json, plots/*.png     written by ``radarslam eval RESULTS_DIR``
+
+:func:`write_results` writes the folder as a whole: everything goes into a hidden sibling folder
+that then replaces ``RESULTS_DIR``, so a reader never sees a partial folder (an interrupted run
+leaves the previous one) and a re-run leaves no file of the previous run behind.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
-from collections.abc import Sequence
+import secrets
+import shutil
+import tempfile
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from radarslam.errors import DataError
-from radarslam.io.atomic import atomic_path, write_json_atomic, write_text_atomic
+from radarslam.io.atomic import (
+    WriteError,
+    atomic_path,
+    folder_error,
+    folder_mode,
+    write_json_atomic,
+    write_text_atomic,
+)
 from radarslam.io.trajectory import write_kitti, write_tum
 from radarslam.slam.map import StaticMap
 from radarslam.slam.records import LoopCandidate, write_loops_csv
 
 RESULTS_FORMAT = "radarslam-results/1"
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+#: What a results folder holds (this module's files, ``radarslam eval``'s, the benchmark's, the
+#: temporary files of atomic writes). An existing folder is replaced only when it holds nothing
+#: else, or when it has a ``run.json`` and no folder but ``plots``.
+_RESULT_ENTRY = re.compile(
+    r"^(?:(?:poses|odometry|gt)_[^/]+\.(?:tum|kitti)|run\.json|config\.yaml|loops\.csv|map\.ply"
+    r"|timing\.json|metrics\.json|bench\.json|pose_graph\.g2o|plots|\.[^/]*\.tmp[^/]*)$"
+)
 
 
 @dataclass(frozen=True)
@@ -91,6 +114,78 @@ def write_map_ply(path: str | Path, static_map: StaticMap) -> None:
             raise DataError(f"{path}: open3d could not write the map")
 
 
+def check_results_dir(results_dir: str | Path) -> Path:
+    """Fail before any work when ``results_dir`` cannot become a results folder: a file is in
+    the way, its parent cannot be created or written, or it is a folder holding other things
+    (which :func:`write_results` would replace). Creates the parent folder."""
+    d = _target(results_dir)
+    if d.is_dir():
+        try:
+            cwd = Path.cwd().resolve()
+        except OSError:  # the current folder was deleted
+            cwd = None
+        if cwd is not None and (d.resolve() == cwd or d.resolve() in cwd.parents):
+            raise DataError(f"{d}: cannot replace the current folder or one holding it")
+    elif d.exists():
+        raise DataError(f"{d}: cannot create results folder ({d} is a file, not a folder)")
+    _check_replaceable(d)
+    try:
+        d.parent.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=f".{d.name}.", suffix=".probe", dir=d.parent))
+    except OSError as exc:
+        raise DataError(f"{d}: cannot create results folder ({folder_error(d, exc)})") from None
+    return d
+
+
+def _target(results_dir: str | Path) -> Path:
+    d = Path(results_dir)
+    # replace what a symbolic link points to, not the link; "." and ".." have no usable name
+    return d.resolve() if d.is_symlink() or d.name in ("", ".", "..") else d
+
+
+def _check_replaceable(d: Path) -> None:
+    if not d.is_dir():
+        return
+    ours = (d / "run.json").is_file()
+    try:
+        other = sorted(
+            e.name
+            for e in d.iterdir()
+            if not _RESULT_ENTRY.match(e.name)
+            and not (ours and e.is_file() and not e.is_symlink() and not e.name.startswith("."))
+        )
+    except OSError as exc:
+        raise DataError(f"{d}: cannot read results folder ({exc.strerror})") from None
+    if other:
+        more = f" and {len(other) - 1} more" if len(other) > 1 else ""
+        raise DataError(
+            f"{d}: holds {other[0]!r}{more}, which is not a result file; a results folder is "
+            "replaced as a whole: choose a new or empty folder"
+        )
+
+
+def _replace_dir(new: Path, target: Path) -> None:
+    """Move ``new`` onto ``target``: the old folder is renamed aside, then deleted."""
+    old = None
+    if target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}-{secrets.token_hex(4)}")
+        os.rename(target, old)
+    try:
+        os.rename(new, target)
+    except BaseException:
+        if old is not None:
+            os.rename(old, target)
+        raise
+    with contextlib.suppress(OSError):  # make the renames durable
+        fd = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
 def write_results(
     results_dir: str | Path,
     sessions: Sequence[SessionResult],
@@ -99,12 +194,47 @@ def write_results(
     config_yaml: str | None = None,
     plots: bool = True,
     components: Sequence[Sequence[str]] | None = None,
+    extra_json: Mapping[str, object] | None = None,
 ) -> Path:
-    """Write everything a run produced; ``radarslam eval`` reads it back."""
-    d = Path(results_dir)
+    """Write everything a run produced; ``radarslam eval`` reads it back.
+
+    The folder is written as a whole (see the module docstring): an existing ``results_dir`` is
+    replaced, and only when it is a results folder (:func:`check_results_dir`). ``extra_json``:
+    more files, name -> JSON object (e.g. ``timing.json``).
+    """
     names = [check_session_name(s.name) for s in sessions]
     if len(set(names)) != len(names):
         raise DataError(f"results: duplicate session names in {names}")
+    target = check_results_dir(results_dir)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+    except OSError as exc:
+        raise DataError(f"{target}: cannot create results folder ({exc.strerror})") from None
+    try:
+        with contextlib.suppress(OSError):
+            os.chmod(tmp, folder_mode())  # mkdtemp makes 0700; a results folder gets the usual
+        try:
+            _write_contents(tmp, sessions, names, loops, static_map, config_yaml, plots, components)
+            for name, obj in (extra_json or {}).items():
+                write_json_atomic(tmp / name, obj)
+        except DataError as exc:  # name the file as the user knows it, not the temporary one
+            if str(tmp) not in str(exc):
+                raise
+            msg = str(exc).replace(str(tmp), str(target))
+            if isinstance(exc, WriteError):
+                raise WriteError(msg, exc.errno) from None
+            raise DataError(msg) from None
+        try:
+            _replace_dir(tmp, target)
+        except OSError as exc:
+            raise DataError(f"{target}: cannot write results folder ({exc.strerror})") from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return Path(results_dir)
+
+
+def _write_contents(d, sessions, names, loops, static_map, config_yaml, plots, components) -> None:
     for s in sessions:
         write_session(d, s)
     if loops is not None:
@@ -125,4 +255,3 @@ def write_results(
     if components is not None:  # the anchored map first; the others live in their own frames
         run["components"] = [list(c) for c in components]
     write_json_atomic(d / "run.json", run)
-    return d

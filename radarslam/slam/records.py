@@ -153,10 +153,28 @@ def write_loops_csv(path: str | Path, loops: list[LoopCandidate]) -> None:
 
 
 def read_loops_csv(path: str | Path) -> list[LoopCandidate]:
+    return [lc for _, lc in read_loops_csv_numbered(path)]
+
+
+def read_loops_csv_numbered(path: str | Path) -> list[tuple[int, LoopCandidate]]:
+    """The loops of ``path`` with the line number each was read from (for error messages)."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: loops file does not exist")
-    with path.open(newline="") as fh:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: not a UTF-8 text file") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        return _parse_loops_csv(path, text)
+    except csv.Error as exc:
+        raise DataError(f"{path}: not a loops CSV file ({exc})") from None
+
+
+def _parse_loops_csv(path: Path, text: str) -> list[tuple[int, LoopCandidate]]:
+    with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         header = next(reader, None)
         columns = tuple(header) if header is not None else ()
@@ -194,5 +212,5 @@ def read_loops_csv(path: str | Path) -> list[LoopCandidate]:
                 raise DataError(f"{path}:{lineno}: malformed loop row {','.join(row)!r}") from None
             if accepted and not np.all(np.isfinite([x, y, yaw])):
                 raise DataError(f"{path}:{lineno}: accepted loop with non-finite pose")
-            out.append(lc)
+            out.append((lineno, lc))
     return out

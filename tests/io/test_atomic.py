@@ -24,3 +24,50 @@ def test_atomic_path_moves_only_on_success(tmp_path):
         raise ValueError
     assert target.read_bytes() == b"png"
     assert len(list(tmp_path.iterdir())) == 1
+
+
+def test_unwritable_targets_are_data_errors_naming_the_path(tmp_path):
+    from radarslam.errors import DataError
+    from radarslam.io.atomic import write_text_atomic
+
+    (tmp_path / "metrics.json").mkdir()
+    with pytest.raises(DataError, match=r"metrics\.json: cannot write \(Is a directory\)"):
+        write_json_atomic(tmp_path / "metrics.json", {"a": 1})
+    (tmp_path / "plots").write_text("not a folder")
+    with pytest.raises(DataError, match=r"plots/a\.png: cannot write \(.*plots is a file"):
+        write_text_atomic(tmp_path / "plots" / "a.png", "x")
+    with pytest.raises(DataError, match=r"plots/b\.png: cannot write \(.*plots is a file"):
+        with atomic_path(tmp_path / "plots" / "b.png") as tmp:
+            tmp.write_bytes(b"png")
+    (tmp_path / "dir.png").mkdir()
+    with pytest.raises(DataError, match=r"dir\.png: cannot write"):
+        with atomic_path(tmp_path / "dir.png") as tmp:
+            tmp.write_bytes(b"png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.png", "metrics.json", "plots"]
+
+
+def test_atomic_files_get_the_umask_mode(tmp_path):
+    import os
+
+    old = os.umask(0o027)
+    try:
+        write_json_atomic(tmp_path / "a.json", {})
+        with atomic_path(tmp_path / "b.png") as tmp:
+            tmp.write_bytes(b"png")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o640
+    assert (tmp_path / "b.png").stat().st_mode & 0o777 == 0o640
+
+
+def test_write_errors_stay_oserrors_for_callers_that_tolerate_them(tmp_path):
+    # e.g. the radar index cache: a read-only folder must not stop the reader
+    import errno
+
+    from radarslam.errors import DataError
+
+    (tmp_path / "cache.npz").mkdir()
+    with pytest.raises(OSError) as err:
+        write_json_atomic(tmp_path / "cache.npz", {})
+    assert isinstance(err.value, DataError) and err.value.errno == errno.EISDIR
+    assert str(err.value) == f"{tmp_path / 'cache.npz'}: cannot write (Is a directory)"

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from radarslam.geometry import se2_to_matrix
 from radarslam.slam.map import StaticMapBuilder, StaticMapConfig
@@ -35,3 +36,100 @@ def test_static_map_removes_movers_and_uses_the_poses(tmp_path):
     back = o3d.io.read_point_cloud(str(tmp_path / "map.ply"))
     np.testing.assert_allclose(np.asarray(back.points), m.xyz, atol=1e-6)
     assert not list(tmp_path.glob(".*tmp*"))
+
+
+# --- the results folder is written as a whole ----------------------------------------------------
+
+
+def _sessions(*names):
+    from radarslam.slam.outputs import SessionResult
+
+    t = 1_000_000 + np.arange(5, dtype=np.int64) * 500_000
+    poses = np.stack([se2_to_matrix(float(i), 0.0, 0.0) for i in range(5)])
+    return [SessionResult(n, t, poses, poses, poses) for n in names]
+
+
+def _snapshot(d):
+    return {
+        p.relative_to(d).as_posix(): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()
+    }
+
+
+def test_rewriting_a_results_folder_leaves_no_stale_file(tmp_path):
+    from radarslam.slam.outputs import write_results
+
+    out = tmp_path / "res"
+    write_results(out, _sessions("scene-0001", "scene-0002"), loops=[], config_yaml="a: 1\n")
+    (out / "metrics.json").write_text("{}")  # what eval adds
+    (out / "plots").mkdir()
+    (out / "plots" / "errors_scene-0002.png").write_bytes(b"png")
+    write_results(out, _sessions("scene-0001"), loops=[], extra_json={"timing.json": {"s": 1}})
+    assert sorted(p.name for p in out.iterdir()) == [
+        "gt_scene-0001.kitti", "gt_scene-0001.tum", "loops.csv", "odometry_scene-0001.kitti",
+        "odometry_scene-0001.tum", "poses_scene-0001.kitti", "poses_scene-0001.tum", "run.json",
+        "timing.json",
+    ]  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]  # no temporary folder
+    assert (out.stat().st_mode & 0o777) == (0o777 & ~_umask())
+
+
+def _umask():
+    from radarslam.io.atomic import _umask
+
+    return _umask()
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("disk on fire"), KeyboardInterrupt()])
+def test_failure_inside_write_results_keeps_the_previous_folder(tmp_path, monkeypatch, exc):
+    from radarslam.slam import outputs
+
+    out = tmp_path / "res"
+    outputs.write_results(out, _sessions("scene-0001", "scene-0002"), loops=[], config_yaml="a\n")
+    before = _snapshot(out)
+
+    def fail(*args, **kwargs):
+        raise exc
+
+    monkeypatch.setattr(outputs, "write_loops_csv", fail)  # after the trajectories are written
+    with pytest.raises(type(exc)):
+        outputs.write_results(out, _sessions("scene-0003"), loops=[], config_yaml="b\n")
+    assert _snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+
+
+def test_a_folder_holding_other_things_is_not_replaced(tmp_path):
+    from radarslam.errors import DataError
+    from radarslam.slam.outputs import check_results_dir, write_results
+
+    out = tmp_path / "res"
+    (out / "data").mkdir(parents=True)  # e.g. a dataroot
+    with pytest.raises(DataError, match=r"res: holds 'data', which is not a result file"):
+        write_results(out, _sessions("scene-0001"))
+    (out / "run.json").write_text("{}")  # even in a results folder, sub-folders are not ours
+    with pytest.raises(DataError, match=r"res: holds 'data'"):
+        check_results_dir(out)
+    assert sorted(p.name for p in out.iterdir()) == ["data", "run.json"]
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(DataError, match=r"file: cannot create results folder \(.*is a file"):
+        check_results_dir(tmp_path / "file")
+    with pytest.raises(DataError, match=r"cannot create results folder \(.*file is a file"):
+        check_results_dir(tmp_path / "file" / "res")
+    assert (tmp_path / "file").read_text() == "x"
+
+
+def test_write_errors_name_the_results_folder_not_the_temporary_one(tmp_path, monkeypatch):
+    from radarslam.errors import DataError
+    from radarslam.io import atomic
+    from radarslam.slam.outputs import write_results
+
+    def no_space(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "fsync", no_space)
+    out = tmp_path / "res"
+    with pytest.raises(DataError) as err:
+        write_results(out, _sessions("scene-0001"))
+    assert (
+        str(err.value) == f"{out / 'poses_scene-0001.tum'}: cannot write (No space left on device)"
+    )
+    assert list(tmp_path.iterdir()) == []

@@ -78,3 +78,24 @@ def test_loops_csv_errors(tmp_path):
         read_loops_csv(path)
     with pytest.raises(DataError, match="does not exist"):
         read_loops_csv(tmp_path / "none.csv")
+
+
+def test_binary_loops_csv_is_a_data_error(tmp_path):
+    path = tmp_path / "loops.csv"
+    path.write_bytes(b"\xfc\x81\x00garbage" * 40)
+    with pytest.raises(DataError, match=r"loops\.csv: not a UTF-8 text file"):
+        read_loops_csv(path)
+    path.write_text("query_session\x00,x\n")
+    with pytest.raises(DataError, match=r"loops\.csv"):
+        read_loops_csv(path)
+
+
+def test_loops_are_numbered_by_their_line(tmp_path):
+    from radarslam.slam.records import read_loops_csv_numbered
+
+    path = tmp_path / "loops.csv"
+    loop = LoopCandidate(NodeKey("s", 1), NodeKey("s", 0), 2, 1, 0.1, False, "fitness")
+    write_loops_csv(path, [loop, loop])
+    text = path.read_text().splitlines()
+    path.write_text("\n".join([text[0], text[1], "", text[2]]) + "\n")
+    assert [n for n, _ in read_loops_csv_numbered(path)] == [2, 4]

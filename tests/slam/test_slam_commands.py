@@ -46,3 +46,88 @@ def test_missing_dataroot_is_one_line_error(tmp_path):
     result = CliRunner().invoke(app, ["run", "--out", str(tmp_path / "r")])
     assert result.exit_code != 0
     assert "--dataroot is required" in str(result.exception)
+
+
+def test_bad_out_fails_before_any_data_is_read(tmp_path):
+    from radarslam.errors import DataError
+
+    (tmp_path / "afile").write_text("keep me")
+    nowhere = str(tmp_path / "no-dataroot")  # reading it first would fail differently
+    for out in (tmp_path / "afile", tmp_path / "afile" / "res"):
+        result = CliRunner().invoke(
+            app, ["run", "--dataroot", nowhere, "--out", str(out), "--no-progress"]
+        )
+        assert isinstance(result.exception, DataError), result.output
+        assert str(result.exception).startswith(f"{out}: cannot create results folder (")
+    assert (tmp_path / "afile").read_text() == "keep me"
+
+
+def test_max_scenes_must_be_positive(tmp_path):
+    import pytest
+
+    from radarslam.errors import ConfigError
+    from radarslam.slam.commands import _select_scenes
+
+    for value in ("0", "-1"):
+        result = CliRunner().invoke(
+            app, ["run", "--dataroot", str(tmp_path), "--out", str(tmp_path / "r"),
+                  "--max-scenes", value],
+        )  # fmt: skip
+        assert result.exit_code == 2 and "--max-scenes" in result.output, result.output
+
+    class Reader:
+        dataroot = tmp_path
+
+        def scene(self, name):
+            return name
+
+    with pytest.raises(ConfigError, match="--max-scenes 0: must be at least 1"):
+        _select_scenes(Reader(), "scene-0001", None, 0)
+
+
+def test_rerun_with_fewer_scenes_replaces_the_folder(tiny_dataroot, tmp_path):
+    out = tmp_path / "res"
+    base = ["run", "--dataroot", str(tiny_dataroot), "--version", "v1.0-mini", "--out", str(out),
+            "--no-loops", "--no-progress"]  # fmt: skip
+    result = CliRunner().invoke(app, base)
+    assert result.exit_code == 0, result.output
+    assert (out / "poses_scene-0002.tum").is_file() and (out / "metrics.json").is_file()
+    assert (out / "plots" / "errors_scene-0002.png").is_file()
+    result = CliRunner().invoke(app, [*base, "--max-scenes", "1", "--no-evaluate"])
+    assert result.exit_code == 0, result.output
+    names = {p.name for p in out.rglob("*")}
+    assert not [n for n in names if "scene-0002" in n or n.startswith(".")], names
+    assert "metrics.json" not in names and "trajectories.png" not in names
+    assert {"run.json", "timing.json", "config.yaml", "poses_scene-0001.tum"} <= names
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+    result = CliRunner().invoke(app, ["eval", str(out), "--no-plots"])
+    assert result.exit_code == 0, result.output
+    assert list(json.loads((out / "metrics.json").read_text())["per_session"]) == ["scene-0001"]
+
+
+def test_demo_twice_into_the_same_folder(tmp_path, monkeypatch):
+    import numpy as np
+
+    from radarslam.slam import commands
+    from radarslam.slam.outputs import SessionResult, write_results
+
+    runs = []
+
+    def fake_run_slam(dataroot, version, out, config=None, progress=True):
+        runs.append(out)
+        t = np.arange(3, dtype=np.int64)
+        write_results(out, [SessionResult("scene-0001", t, np.stack([np.eye(4)] * 3))])
+
+    def fake_data(preset, dataroot, progress):
+        dataroot.mkdir(parents=True, exist_ok=True)
+        (dataroot / "table.json").write_text("[]")
+        return "v1.0-mini"
+
+    monkeypatch.setattr(commands, "run_slam", fake_run_slam)
+    monkeypatch.setattr(commands, "_ensure_synthetic", fake_data)
+    for _ in range(2):
+        result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "demo"), "--no-progress"])
+        assert result.exit_code == 0, result.output
+    assert runs == [tmp_path / "demo" / "results"] * 2
+    assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == ["data", "results"]
+    assert (tmp_path / "demo" / "data" / "table.json").is_file()
