@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from radarslam.config import StrictModel
 from radarslam.odometry.config import OdometryConfig
 from radarslam.slam.backend_config import BackendConfig
+from radarslam.types import RADAR_CHANNELS
 
 
 class KeyFrameConfig(StrictModel):
@@ -23,6 +24,13 @@ class KeyFrameConfig(StrictModel):
     #: of every frame (free: it is already computed) or AutoPlace's DPR run again per sweep
     #: (Algorithm 1 of the paper, as the place-recognition training data was made).
     dynamic_points: Literal["odometry", "dpr"] = "odometry"
+
+    @field_validator("ref_channel")
+    @classmethod
+    def _ref(cls, v: str) -> str:
+        if v not in RADAR_CHANNELS:
+            raise ValueError(f"unknown radar channel {v!r} (one of {', '.join(RADAR_CHANNELS)})")
+        return v
 
 
 class LoopDetectionConfig(StrictModel):
