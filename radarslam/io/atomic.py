@@ -1,6 +1,7 @@
 """Atomic file writes: write to a temporary sibling, fsync, then rename over the target.
 
 An interrupted run therefore leaves either the old file or the new one, never half of one.
+:func:`atomic_folder` does the same for a whole folder of outputs.
 A target that cannot be written (its folder is a file, it is a folder, no permission, disk full)
 raises :class:`WriteError`, a :class:`~radarslam.errors.DataError` naming the target.
 """
@@ -10,8 +11,10 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import secrets
+import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -151,3 +154,98 @@ class _AtomicPath(contextlib.AbstractContextManager):
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.tmp)
         return False
+
+
+@contextlib.contextmanager
+def atomic_folder(target: str | Path) -> Iterator[Path]:
+    """A hidden sibling folder to write into; on clean exit it replaces ``target`` as a whole.
+
+    A reader never sees a partial folder: an exception (Ctrl-C included) removes the sibling and
+    leaves ``target`` as it was, and a re-run that writes fewer files leaves none of the previous
+    run's behind. Whether ``target`` may be replaced at all is the caller's policy. Errors that
+    name a file inside the sibling are re-raised naming it inside ``target``.
+    """
+    target = Path(target)
+    _make_parent(target)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+    except OSError as exc:
+        raise cannot_write(target, exc) from None
+    try:
+        with contextlib.suppress(OSError):
+            os.chmod(tmp, folder_mode())  # mkdtemp makes 0700; outputs get the usual mode
+        try:
+            yield tmp
+        except DataError as exc:  # name the file as the user knows it, not the temporary one
+            if str(tmp) not in str(exc):
+                raise
+            msg = str(exc).replace(str(tmp), str(target))
+            if isinstance(exc, WriteError):
+                raise WriteError(msg, exc.errno) from None
+            raise DataError(msg) from None
+        try:
+            replace_folder(tmp, target)
+        except OSError as exc:
+            raise cannot_write(target, exc) from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def replace_folder(new: str | Path, target: str | Path) -> None:
+    """Move folder ``new`` onto ``target`` (an existing one is renamed aside, then deleted)."""
+    new, target = Path(new), Path(target)
+    old = None
+    if target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}-{secrets.token_hex(4)}")
+        os.rename(target, old)
+    try:
+        os.rename(new, target)
+    except BaseException:
+        if old is not None:
+            os.rename(old, target)
+        raise
+    with contextlib.suppress(OSError):  # make the renames durable
+        fd = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def check_output_folder(folder: str | Path, is_output: Callable[[Path], bool], what: str) -> Path:
+    """Fail before any work when ``folder`` cannot be written by :func:`atomic_folder`: a file is
+    in the way, its parent cannot be created or written, it is the current folder (or holds it),
+    or it holds an entry that ``is_output`` does not recognise as a ``what`` (a replaced folder
+    loses everything in it). Creates the parent folder; returns the folder to write (a symbolic
+    link resolved, so that the link's target is what gets replaced)."""
+    d = Path(folder)
+    if d.is_symlink() or d.name in ("", ".", ".."):  # "." and ".." have no usable name
+        d = d.resolve()
+    if d.is_dir():
+        try:
+            cwd = Path.cwd().resolve()
+        except OSError:  # the current folder was deleted
+            cwd = None
+        if cwd is not None and (d.resolve() == cwd or d.resolve() in cwd.parents):
+            raise DataError(f"{d}: cannot replace the current folder or one holding it")
+        try:
+            other = sorted(e.name for e in d.iterdir() if not is_output(e))
+        except OSError as exc:
+            raise DataError(f"{d}: cannot read results folder ({exc.strerror})") from None
+        if other:
+            more = f" and {len(other) - 1} more" if len(other) > 1 else ""
+            raise DataError(
+                f"{d}: holds {other[0]!r}{more}, which is not a {what}; a results folder is "
+                "replaced as a whole: choose a new or empty folder"
+            )
+    elif d.exists():
+        raise DataError(f"{d}: cannot create results folder ({d} is a file, not a folder)")
+    try:
+        d.parent.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=f".{d.name}.", suffix=".probe", dir=d.parent))
+    except OSError as exc:
+        raise DataError(f"{d}: cannot create results folder ({folder_error(d, exc)})") from None
+    return d

@@ -12,7 +12,7 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "odometry" / 
 
 def odometry(
     dataroot: Annotated[Path, typer.Option(help="nuScenes dataroot (holds <version>/*.json).")],
-    out: Annotated[Path, typer.Option(help="Output folder (created).")],
+    out: Annotated[Path, typer.Option(help="Output folder (new, or an earlier run's: replaced).")],
     version: Annotated[str, typer.Option(help="v1.0-mini, v1.0-trainval or v1.0-test.")] = (
         "v1.0-mini"
     ),
@@ -37,13 +37,13 @@ def odometry(
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import METHODS
     from radarslam.odometry.config import OdometryConfig
-    from radarslam.odometry.run import make_output_dir, run_odometry, write_outputs
+    from radarslam.odometry.run import check_output_dir, run_odometry, write_outputs
 
     if method not in METHODS:
         raise ConfigError(f"--method {method!r}: choose one of {', '.join(METHODS)}")
     path = config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
     cfg = load_config(OdometryConfig, path, set_)
-    make_output_dir(out)  # a bad --out fails now, not after the run
+    check_output_dir(out)  # a bad --out fails now, not after the run
     reader = NuScenesRadar(dataroot, version)
     names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
     infos = [reader.scene(n) for n in names] if names else reader.scenes()

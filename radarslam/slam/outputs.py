@@ -20,12 +20,7 @@ leaves the previous one) and a re-run leaves no file of the previous run behind.
 
 from __future__ import annotations
 
-import contextlib
-import os
 import re
-import secrets
-import shutil
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,10 +29,9 @@ import numpy as np
 
 from radarslam.errors import DataError
 from radarslam.io.atomic import (
-    WriteError,
+    atomic_folder,
     atomic_path,
-    folder_error,
-    folder_mode,
+    check_output_folder,
     write_json_atomic,
     write_text_atomic,
 )
@@ -118,72 +112,15 @@ def check_results_dir(results_dir: str | Path) -> Path:
     """Fail before any work when ``results_dir`` cannot become a results folder: a file is in
     the way, its parent cannot be created or written, or it is a folder holding other things
     (which :func:`write_results` would replace). Creates the parent folder."""
-    d = _target(results_dir)
-    if d.is_dir():
-        try:
-            cwd = Path.cwd().resolve()
-        except OSError:  # the current folder was deleted
-            cwd = None
-        if cwd is not None and (d.resolve() == cwd or d.resolve() in cwd.parents):
-            raise DataError(f"{d}: cannot replace the current folder or one holding it")
-    elif d.exists():
-        raise DataError(f"{d}: cannot create results folder ({d} is a file, not a folder)")
-    _check_replaceable(d)
-    try:
-        d.parent.mkdir(parents=True, exist_ok=True)
-        os.rmdir(tempfile.mkdtemp(prefix=f".{d.name}.", suffix=".probe", dir=d.parent))
-    except OSError as exc:
-        raise DataError(f"{d}: cannot create results folder ({folder_error(d, exc)})") from None
-    return d
+    return check_output_folder(results_dir, _is_result_entry, "result file")
 
 
-def _target(results_dir: str | Path) -> Path:
-    d = Path(results_dir)
-    # replace what a symbolic link points to, not the link; "." and ".." have no usable name
-    return d.resolve() if d.is_symlink() or d.name in ("", ".", "..") else d
-
-
-def _check_replaceable(d: Path) -> None:
-    if not d.is_dir():
-        return
-    ours = (d / "run.json").is_file()
-    try:
-        other = sorted(
-            e.name
-            for e in d.iterdir()
-            if not _RESULT_ENTRY.match(e.name)
-            and not (ours and e.is_file() and not e.is_symlink() and not e.name.startswith("."))
-        )
-    except OSError as exc:
-        raise DataError(f"{d}: cannot read results folder ({exc.strerror})") from None
-    if other:
-        more = f" and {len(other) - 1} more" if len(other) > 1 else ""
-        raise DataError(
-            f"{d}: holds {other[0]!r}{more}, which is not a result file; a results folder is "
-            "replaced as a whole: choose a new or empty folder"
-        )
-
-
-def _replace_dir(new: Path, target: Path) -> None:
-    """Move ``new`` onto ``target``: the old folder is renamed aside, then deleted."""
-    old = None
-    if target.exists():
-        old = target.with_name(f".{target.name}.old-{os.getpid()}-{secrets.token_hex(4)}")
-        os.rename(target, old)
-    try:
-        os.rename(new, target)
-    except BaseException:
-        if old is not None:
-            os.rename(old, target)
-        raise
-    with contextlib.suppress(OSError):  # make the renames durable
-        fd = os.open(target.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+def _is_result_entry(entry: Path) -> bool:
+    if _RESULT_ENTRY.match(entry.name):
+        return True
+    # a folder with a run.json is ours: any plain file beside it (e.g. a user's notes) goes too
+    ours = (entry.parent / "run.json").is_file()
+    return ours and entry.is_file() and not entry.is_symlink() and not entry.name.startswith(".")
 
 
 def write_results(
@@ -206,31 +143,10 @@ def write_results(
     if len(set(names)) != len(names):
         raise DataError(f"results: duplicate session names in {names}")
     target = check_results_dir(results_dir)
-    try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
-    except OSError as exc:
-        raise DataError(f"{target}: cannot create results folder ({exc.strerror})") from None
-    try:
-        with contextlib.suppress(OSError):
-            os.chmod(tmp, folder_mode())  # mkdtemp makes 0700; a results folder gets the usual
-        try:
-            _write_contents(tmp, sessions, names, loops, static_map, config_yaml, plots, components)
-            for name, obj in (extra_json or {}).items():
-                write_json_atomic(tmp / name, obj)
-        except DataError as exc:  # name the file as the user knows it, not the temporary one
-            if str(tmp) not in str(exc):
-                raise
-            msg = str(exc).replace(str(tmp), str(target))
-            if isinstance(exc, WriteError):
-                raise WriteError(msg, exc.errno) from None
-            raise DataError(msg) from None
-        try:
-            _replace_dir(tmp, target)
-        except OSError as exc:
-            raise DataError(f"{target}: cannot write results folder ({exc.strerror})") from None
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with atomic_folder(target) as tmp:
+        _write_contents(tmp, sessions, names, loops, static_map, config_yaml, plots, components)
+        for name, obj in (extra_json or {}).items():
+            write_json_atomic(tmp / name, obj)
     return Path(results_dir)
 
 

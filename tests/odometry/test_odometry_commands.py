@@ -32,3 +32,46 @@ def test_override_errors_name_the_override(tmp_path):
     assert msg.startswith("override 'registration.voxel_size_m=-1': 'registration.voxel_size_m'")
     assert "default.yaml" not in msg
     assert not (tmp_path / "o").exists()
+
+
+def test_outputs_replace_an_earlier_run_as_a_whole(tiny_dataroot, tmp_path, monkeypatch):
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    out = tmp_path / "odo"
+    names = [s.name for s in NuScenesRadar(tiny_dataroot, "v1.0-mini").scenes()]
+    args = ["odometry", "--dataroot", str(tiny_dataroot), "--out", str(out), "--no-progress"]
+    assert CliRunner().invoke(app, args).exit_code == 0
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == sorted(names)
+    # a re-run over one scene leaves no folder of the other
+    result = CliRunner().invoke(app, [*args, "--scenes", names[0]])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [names[0], "config.yaml", "summary.json"]
+    )
+    before = (out / "summary.json").read_text()
+
+    # a run that fails while writing keeps the previous folder and leaves no temporary one
+    import radarslam.odometry.run as run_module
+
+    def boom(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_module, "_key_frames_csv", boom)
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code != 0
+    assert (out / "summary.json").read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["odo"]
+
+
+def test_a_folder_holding_other_things_is_not_replaced(tmp_path):
+    out = tmp_path / "odo"
+    (out / "scene-0001").mkdir(parents=True)
+    (out / "scene-0001" / "estimate.tum").write_text("")
+    (out / "notes.txt").write_text("mine")
+    nowhere = str(tmp_path / "no-dataroot")
+    result = CliRunner().invoke(
+        app, ["odometry", "--dataroot", nowhere, "--out", str(out), "--no-progress"]
+    )
+    assert isinstance(result.exception, DataError)
+    assert str(result.exception).startswith(f"{out}: holds 'notes.txt', which is not a file")
+    assert (out / "notes.txt").read_text() == "mine"
