@@ -43,7 +43,7 @@ RESULTS_FORMAT = "radarslam-results/1"
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 #: What a results folder holds (this module's files, ``radarslam eval``'s, the benchmark's, the
 #: temporary files of atomic writes). An existing folder is replaced only when it holds nothing
-#: else, or when it has a ``run.json`` and no folder but ``plots``.
+#: else.
 _RESULT_ENTRY = re.compile(
     r"^(?:(?:poses|odometry|gt)_[^/]+\.(?:tum|kitti)|run\.json|config\.yaml|loops\.csv|map\.ply"
     r"|timing\.json|metrics\.json|bench\.json|pose_graph\.g2o|plots|\.[^/]*\.tmp[^/]*)$"
@@ -116,11 +116,8 @@ def check_results_dir(results_dir: str | Path) -> Path:
 
 
 def _is_result_entry(entry: Path) -> bool:
-    if _RESULT_ENTRY.match(entry.name):
-        return True
-    # a folder with a run.json is ours: any plain file beside it (e.g. a user's notes) goes too
-    ours = (entry.parent / "run.json").is_file()
-    return ours and entry.is_file() and not entry.is_symlink() and not entry.name.startswith(".")
+    # anything else (a user's notes beside the results, say) would be lost with the folder
+    return bool(_RESULT_ENTRY.match(entry.name))
 
 
 def write_results(

@@ -109,6 +109,11 @@ def test_a_folder_holding_other_things_is_not_replaced(tmp_path):
     with pytest.raises(DataError, match=r"res: holds 'data'"):
         check_results_dir(out)
     assert sorted(p.name for p in out.iterdir()) == ["data", "run.json"]
+    (out / "data").rmdir()
+    (out / "notes.txt").write_text("mine")  # nor are a user's files beside the results
+    with pytest.raises(DataError, match=r"res: holds 'notes.txt', which is not a result file"):
+        write_results(out, _sessions("scene-0001"))
+    assert (out / "notes.txt").read_text() == "mine"
     (tmp_path / "file").write_text("x")
     with pytest.raises(DataError, match=r"file: cannot create results folder \(.*is a file"):
         check_results_dir(tmp_path / "file")
