@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 
@@ -51,3 +53,44 @@ def test_orthonormalize_repairs_drifted_rotation():
 
 def test_wrap_angle():
     assert np.allclose(g.wrap_angle([3 * np.pi, -3 * np.pi / 2, 0.1]), [np.pi, np.pi / 2, 0.1])
+
+
+def _rigid(yaw=0.4, t=(1000.0, -20.0, 1.5)):
+    pose = g.se2_to_matrix(t[0], t[1], yaw)
+    pose[2, 3] = t[2]
+    return pose
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        (lambda p: np.full((4, 4), np.nan), "has non-finite entries"),
+        (lambda p: p[:3, :3], r"has shape \(3, 3\), expected \(4, 4\)"),
+        (lambda p: p @ np.diag([2.0, 2.0, 2.0, 1.0]), r"non-orthonormal .*R R\^T - I\| = 3"),
+        (lambda p: p @ np.diag([1.0, 1.0, -1.0, 1.0]), r"reflection .*det -1"),
+        (lambda p: p + np.pad([[0, 0.5, 0], [0, 0, 0], [0, 0, 0]], ((0, 1), (0, 1))), "skewed"),
+        (lambda p: np.vstack([p[:3], [0.0, 0.0, 1.0, 1.0]]), r"bottom row \[0\.0, 0\.0, 1\.0"),
+        (lambda p: [["a"]], "not a numeric 4x4 matrix"),
+    ],
+)
+def test_rigid_problem_names_what_is_wrong(damage, match):
+    bad = damage(_rigid())
+    why = g.rigid_problem(bad)
+    assert why is not None and re.search(match, why), why
+    stack = np.stack([_rigid(), _rigid(0.1)])
+    if np.shape(bad) == (4, 4) and np.asarray(bad).dtype != object:
+        stack = np.stack([_rigid(), np.asarray(bad, dtype=float), _rigid(0.1)])
+        assert g.rigid_problems(stack) == (1, why)
+
+
+def test_rigid_problem_accepts_rigid_float32_and_lists():
+    pose = _rigid()
+    pose[:3, :3] = g.quat_to_rotation([0.9, 0.1, -0.2, 0.3])  # roll/pitch too
+    assert g.rigid_problem(pose) is None
+    assert g.rigid_problem(pose.astype(np.float32)) is None  # float32 rounding < 1e-6
+    assert g.rigid_problem(pose.tolist()) is None
+    assert g.rigid_problems(np.stack([pose] * 3)) is None
+    assert g.rigid_problems(np.zeros((0, 4, 4))) is None
+    almost = pose.copy()
+    almost[:3, :3] *= 1 + 5e-4
+    assert g.rigid_problem(almost) is not None and g.rigid_problem(almost, tol=2e-3) is None

@@ -20,6 +20,10 @@ from typing import Literal
 import numpy as np
 
 from radarslam.errors import DataError
+from radarslam.geometry import rigid_problems
+
+#: Rotation-block tolerance of (N, 4, 4) inputs: the trajectory files' (what read_kitti accepts).
+POSE_TOLERANCE = 1e-3
 
 AlignMode = Literal["se2", "none", "first"]
 DeltaUnit = Literal["s", "m", "frames"]
@@ -29,9 +33,18 @@ DeltaUnit = Literal["s", "m", "frames"]
 
 
 def to_xy_yaw(poses, what: str = "poses") -> np.ndarray:
-    """(N, 3) (x, y, yaw) from (N, 4, 4) poses or an (N, 3) array (returned as float64 copy)."""
-    arr = np.asarray(poses, dtype=np.float64)
+    """(N, 3) (x, y, yaw) from (N, 4, 4) poses or an (N, 3) array (returned as float64 copy).
+
+    4x4 poses must be rigid (rotation block orthonormal with det +1, bottom row 0 0 0 1, within
+    :data:`POSE_TOLERANCE`): the yaw of a scaled or skewed block means nothing."""
+    try:
+        arr = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{what}: poses must be numeric (N, 4, 4) or (N, 3) arrays") from None
     if arr.ndim == 3 and arr.shape[1:] == (4, 4):
+        bad = rigid_problems(arr, POSE_TOLERANCE)
+        if bad is not None:
+            raise DataError(f"{what}: pose {bad[0]} {bad[1]}")
         out = np.column_stack([arr[:, 0, 3], arr[:, 1, 3], np.arctan2(arr[:, 1, 0], arr[:, 0, 0])])
     elif arr.ndim == 2 and arr.shape[1] == 3:
         out = arr.copy()
@@ -253,6 +266,8 @@ def pairs_for_delta(
     Starts whose j would fall off the end are dropped.
     """
     n = len(ref_xy_yaw)
+    if isinstance(delta, bool) or not isinstance(delta, (int, float, np.integer, np.floating)):
+        raise DataError(f"RPE: delta must be a number, got {type(delta).__name__} {delta!r}")
     if not np.isfinite(delta) or delta <= 0:
         raise DataError(f"RPE: delta must be > 0, got {delta}")
     starts = np.arange(n)
@@ -263,13 +278,12 @@ def pairs_for_delta(
     elif unit == "s":
         if timestamps_us is None:
             raise DataError("RPE: delta in seconds needs timestamps_us")
-        t = np.asarray(timestamps_us, dtype=np.int64)
-        if t.shape != (n,):
-            raise DataError(f"RPE: {t.shape} timestamps for {n} poses")
-        if np.any(np.diff(t) < 0):
-            raise DataError("RPE: timestamps_us are not sorted")
-        target = t + round(delta * 1e6) - 1000
-        ends = np.searchsorted(t, target, side="left")
+        t = _timestamps_us(timestamps_us, n)
+        if delta * 1e6 >= 2.0**62:
+            ends = np.full(n, n)  # longer than any trajectory: no pair
+        else:
+            target = t + (round(delta * 1e6) - 1000)
+            ends = np.searchsorted(t, target, side="left")
     elif unit == "m":
         d = path_lengths_m(ref_xy_yaw)
         ends = np.searchsorted(d, d + delta - 1e-9, side="left")
@@ -277,6 +291,48 @@ def pairs_for_delta(
         raise DataError(f"RPE: unknown delta unit {unit!r} (expected s, m or frames)")
     keep = (ends < n) & (ends > starts)
     return np.column_stack([starts[keep], ends[keep]])
+
+
+def _timestamps_us(timestamps_us, n: int) -> np.ndarray:
+    """(n,) int64 sorted integer microseconds; integral floats accepted, anything else (seconds,
+    NaN, strings, bools) a :class:`DataError` naming the value."""
+    ts = np.asarray(timestamps_us)
+    if ts.shape != (n,):
+        raise DataError(f"RPE: {ts.shape} timestamps for {n} poses")
+    if ts.dtype == bool or not (
+        np.issubdtype(ts.dtype, np.integer) or np.issubdtype(ts.dtype, np.floating)
+    ):
+        raise DataError(
+            f"RPE: timestamps_us must be integer microseconds, got {ts.dtype} values"
+            + (f" such as {ts.flat[0].item()!r}" if ts.size else "")
+        )
+    if np.issubdtype(ts.dtype, np.floating):
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(ts)
+            frac = ~bad & (ts != np.round(ts))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DataError(
+                f"RPE: timestamp {i} is {ts[i].item()!r}; timestamps_us must be finite integer "
+                "microseconds"
+            )
+        if frac.any():
+            i = int(np.argmax(frac))
+            raise DataError(
+                f"RPE: timestamp {i} is {ts[i].item()!r}, which has a fractional part; "
+                "timestamps_us must be integer microseconds (seconds given? multiply by 1e6)"
+            )
+    if n and (ts.max() >= 2**62 or ts.min() <= -(2**62)):  # t + delta must not wrap in int64
+        i = int(np.argmax(np.abs(ts.astype(np.float64))))
+        raise DataError(f"RPE: timestamp {i} ({ts[i].item()!r} us) is out of range (|t| < 2^62)")
+    t = ts.astype(np.int64)
+    if np.any(np.diff(t) < 0):
+        i = int(np.argmax(np.diff(t) < 0)) + 1
+        raise DataError(
+            f"RPE: timestamps_us are not sorted (timestamp {i}, {int(t[i])} us, is earlier "
+            "than the one before)"
+        )
+    return t
 
 
 @dataclass(frozen=True)
@@ -373,13 +429,25 @@ def drift(
     """KITTI-style drift: for each start (every ``step_frames``) and length L, the first frame
     whose reference path from the start is >= L; error = |t_err| / L and |yaw_err| / L."""
     e, r = _check_pair(est_poses, ref_poses)
+    if isinstance(step_frames, bool) or not isinstance(step_frames, (int, np.integer)):
+        raise DataError(
+            f"drift: step_frames must be an integer >= 1, got {type(step_frames).__name__} "
+            f"{step_frames!r}"
+        )
     if step_frames < 1:
         raise DataError(f"drift: step_frames must be >= 1, got {step_frames}")
-    lengths = [float(x) for x in segment_lengths_m]
+    if np.ndim(segment_lengths_m) == 0 and not isinstance(segment_lengths_m, str):
+        segment_lengths_m = (segment_lengths_m,)  # one length given as a bare number
+    try:
+        lengths = [float(x) for x in segment_lengths_m]
+    except (TypeError, ValueError):
+        raise DataError(
+            f"drift: segment lengths must be numbers in metres, got {segment_lengths_m!r}"
+        ) from None
     if not lengths or any(not np.isfinite(x) or x <= 0 for x in lengths):
         raise DataError(f"drift: segment lengths must be positive, got {list(segment_lengths_m)}")
     dist = path_lengths_m(r)
-    starts = np.arange(0, len(r), step_frames)
+    starts = np.arange(0, len(r), int(step_frames))
     all_t, all_r = [], []
     per_length = {}
     for length in lengths:

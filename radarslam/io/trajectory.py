@@ -19,28 +19,65 @@ from pathlib import Path
 import numpy as np
 
 from radarslam.errors import DataError
-from radarslam.geometry import make_transform, rotation_to_quat
+from radarslam.geometry import make_transform, rigid_problem, rigid_problems, rotation_to_quat
 from radarslam.io.atomic import atomic_open
+
+#: Tolerance of the rotation check (|R R^T - I|, |det R - 1|, bottom row), the same when writing
+#: and reading: what the writers accept, the readers read back. Loose enough for poses printed
+#: with few digits by other tools.
+POSE_TOLERANCE = 1e-3
+
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 
 
 def _check_poses(poses, what: str) -> np.ndarray:
-    arr = np.asarray(poses, dtype=np.float64)
+    """(N, 4, 4) float64 rigid poses (float32 or lists converted), else :class:`DataError`."""
+    try:
+        arr = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{what}: poses must be a numeric (N, 4, 4) array") from None
     if arr.ndim != 3 or arr.shape[1:] != (4, 4):
         raise DataError(f"{what}: poses must have shape (N, 4, 4), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        bad = int(np.argmax(~np.all(np.isfinite(arr), axis=(1, 2))))
-        raise DataError(f"{what}: pose {bad} has non-finite entries")
+    bad = rigid_problems(arr, POSE_TOLERANCE)
+    if bad is not None:
+        raise DataError(f"{what}: pose {bad[0]} {bad[1]}")
     return arr
 
 
 def _check_timestamps(timestamps_us, n: int, what: str) -> np.ndarray:
+    """(n,) int64 strictly increasing integer microseconds (integral floats accepted), else
+    :class:`DataError` naming ``what`` and the first offending value."""
     ts = np.asarray(timestamps_us)
     if ts.ndim != 1 or len(ts) != n:
         raise DataError(f"{what}: {ts.shape} timestamps for {n} poses (need one per pose)")
-    if ts.size and not np.issubdtype(ts.dtype, np.integer):
-        if not np.all(np.isfinite(ts)) or np.any(ts != np.round(ts)):
-            raise DataError(f"{what}: timestamps_us must be integer microseconds")
-    return ts.astype(np.int64)
+    if ts.dtype == bool or not (
+        np.issubdtype(ts.dtype, np.integer) or np.issubdtype(ts.dtype, np.floating)
+    ):
+        raise DataError(
+            f"{what}: timestamps_us must be integer microseconds, got {ts.dtype} values"
+            + (f" such as {ts.flat[0].item()!r}" if ts.size else "")
+        )
+    if ts.size and np.issubdtype(ts.dtype, np.floating):
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(ts) | (ts != np.round(ts)) | (ts < -(2.0**63)) | (ts >= 2.0**63)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DataError(
+                f"{what}: timestamp {i} is {ts[i].item()!r}; timestamps_us must be finite integer "
+                "microseconds (seconds given? multiply by 1e6)"
+            )
+    if ts.dtype == np.uint64 and ts.size and ts.max() > _INT64_MAX:
+        raise DataError(f"{what}: timestamp {int(ts.max())} us is out of the int64 range")
+    out = ts.astype(np.int64)
+    steps = np.diff(out)
+    if (steps <= 0).any():
+        i = int(np.argmax(steps <= 0)) + 1
+        how = "repeats" if steps[i - 1] == 0 else "is earlier than"
+        raise DataError(
+            f"{what}: timestamp {i} ({int(out[i])} us) {how} the previous one; timestamps must "
+            "be strictly increasing"
+        )
+    return out
 
 
 def _fmt(x: float) -> str:
@@ -55,15 +92,25 @@ def _us_to_seconds_text(t_us: int) -> str:
 
 
 def _seconds_text_to_us(text: str) -> int:
+    """Exact integer microseconds of a decimal seconds text; InvalidOperation when it is not a
+    finite number, OverflowError when it does not fit int64."""
     # Decimal keeps nuScenes-sized timestamps (~1.5e15 us) exact where float64 seconds would not.
-    value = Decimal(text) * 1_000_000
+    value = Decimal(text)
     if not value.is_finite():
         raise InvalidOperation
-    return int(value.to_integral_value())
+    if value.adjusted() > 15:  # >= 1e16 s: never expand a huge exponent into an int
+        raise OverflowError
+    us = int((value * 1_000_000).to_integral_value())
+    if not _INT64_MIN <= us <= _INT64_MAX:
+        raise OverflowError
+    return us
 
 
 def write_tum(path: str | Path, timestamps_us, poses) -> None:
-    """Write ``timestamp_s tx ty tz qx qy qz qw`` lines (evo's TUM format), atomically."""
+    """Write ``timestamp_s tx ty tz qx qy qz qw`` lines (evo's TUM format), atomically.
+
+    What :func:`read_tum` would reject is a :class:`DataError` here, before anything is written:
+    poses must be rigid (:data:`POSE_TOLERANCE`), timestamps strictly increasing integers."""
     arr = _check_poses(poses, str(path))
     ts = _check_timestamps(timestamps_us, len(arr), str(path))
     lines = []
@@ -120,7 +167,12 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             )
         try:
             stamps.append(_seconds_text_to_us(tokens[0]))
-        except (InvalidOperation, ValueError):
+        except OverflowError:
+            raise DataError(
+                f"{path}:{lineno}: timestamp {tokens[0]!r} s is out of range (int64 microseconds "
+                "hold |t| < 9.2e12 s)"
+            ) from None
+        except (ArithmeticError, ValueError):  # InvalidOperation, decimal Overflow, ...
             raise DataError(f"{path}:{lineno}: bad timestamp {tokens[0]!r}") from None
         if len(stamps) > 1 and stamps[-1] <= stamps[-2]:
             what = "repeats" if stamps[-1] == stamps[-2] else "is earlier than"
@@ -139,7 +191,9 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_kitti(path: str | Path, poses) -> None:
-    """Write each pose's 3x4 block as 12 numbers per line (KITTI odometry format), atomically."""
+    """Write each pose's 3x4 block as 12 numbers per line (KITTI odometry format), atomically.
+
+    Poses must be rigid with bottom row (0, 0, 0, 1), as :func:`read_kitti` checks them."""
     arr = _check_poses(poses, str(path))
     with atomic_open(path, "w") as fh:
         for pose in arr:
@@ -155,10 +209,9 @@ def read_kitti(path: str | Path) -> np.ndarray:
             raise DataError(f"{path}:{lineno}: expected 12 values (3x4 pose), got {len(tokens)}")
         pose = np.eye(4)
         pose[:3, :4] = np.asarray(_floats(path, lineno, tokens)).reshape(3, 4)
-        rot = pose[:3, :3]
-        orthogonal = np.allclose(rot @ rot.T, np.eye(3), atol=1e-3)
-        if abs(np.linalg.det(rot) - 1.0) > 1e-3 or not orthogonal:
-            raise DataError(f"{path}:{lineno}: rotation block is not a rotation matrix")
+        why = rigid_problem(pose, POSE_TOLERANCE)
+        if why is not None:
+            raise DataError(f"{path}:{lineno}: rotation block is not a rotation matrix: pose {why}")
         poses.append(pose)
     if not poses:
         return np.zeros((0, 4, 4))

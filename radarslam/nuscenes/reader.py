@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radarslam.errors import DataError
+from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert
 from radarslam.nuscenes.filters import RadarPointFilter
 from radarslam.nuscenes.pcd import read_pcd
@@ -67,6 +67,41 @@ def _channel_index(channel: str) -> int:
     except ValueError:
         raise DataError(
             f"unknown radar channel {channel!r}; expected one of {RADAR_CHANNELS}"
+        ) from None
+
+
+def _check_filters(filters) -> None:
+    if filters is not None and not isinstance(filters, RadarPointFilter):
+        raise ConfigError(
+            f"filters must be a RadarPointFilter or None, got {type(filters).__name__} {filters!r}"
+        )
+
+
+def _is_real(x) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float, np.integer, np.floating))
+
+
+def _check_sync_tolerance(sync_tolerance_us) -> None:
+    if sync_tolerance_us is None:
+        return
+    if not _is_real(sync_tolerance_us) or not np.isfinite(sync_tolerance_us):
+        raise ConfigError(
+            f"sync_tolerance_us must be a finite number of microseconds > 0 or None, got "
+            f"{sync_tolerance_us!r}"
+        )
+    if sync_tolerance_us <= 0:
+        raise ConfigError(f"sync_tolerance_us must be > 0, got {sync_tolerance_us!r}")
+
+
+def _channel_list(channels) -> list[str]:
+    """``channels`` as a list: one channel name given as a bare string is one channel."""
+    if isinstance(channels, str):
+        return [channels]
+    try:
+        return list(channels)
+    except TypeError:
+        raise ConfigError(
+            f"channels must be a radar channel name or a list of them, got {channels!r}"
         ) from None
 
 
@@ -171,8 +206,24 @@ class NuScenesRadar:
         return list(self._scene_infos)
 
     def scene(self, name: str | SceneInfo) -> SceneInfo:
+        """This reader's :class:`SceneInfo` of a scene name, or of a :class:`SceneInfo` (which
+        must be one of this dataset's scenes: same name and token; :class:`DataError` naming
+        both otherwise, e.g. a scene of another dataroot with the same name)."""
         if isinstance(name, SceneInfo):
-            return name
+            row = self.tables.small.scene_row.get(name.name)
+            own = None if row is None else self.scenes()[row]
+            if own is None or own.token != name.token:
+                mine = f"its {name.name!r} has token {own.token!r}" if own else "no such name"
+                raise DataError(
+                    f"scene {name.name!r} (token {name.token!r}) is not a scene of "
+                    f"{self.tables.table_dir} ({mine}): a SceneInfo from another dataset or "
+                    "reader?"
+                )
+            return own
+        if not isinstance(name, str):
+            raise DataError(
+                f"scene must be a scene name or a SceneInfo, got {type(name).__name__} {name!r}"
+            )
         row = self.tables.small.scene_row.get(name)
         if row is None:
             names = [s.name for s in self.scenes()]
@@ -333,6 +384,7 @@ class NuScenesRadar:
         self, sample_data_token: str, filters: RadarPointFilter | None = None
     ) -> RadarSweep:
         """One radar sweep by its sample_data token (reader's filters unless ``filters``)."""
+        _check_filters(filters)
         return self._sweep(self._row_of(sample_data_token), filters)
 
     def _report_skips(self, scene_name: str, before: dict[str, int] | None) -> None:
@@ -365,6 +417,7 @@ class NuScenesRadar:
     ) -> Iterator[RadarSweep]:
         """The sweeps of one radar in a scene, following the sample_data prev/next chain (time
         order). Points are in the sensor frame, after the reader's filters (or ``filters``)."""
+        _check_filters(filters)
         info = self.scene(scene)
         rows = self._rows(info, channel)
         if key_frames_only:
@@ -397,6 +450,7 @@ class NuScenesRadar:
     ) -> list[dict[str, str]]:
         """The grouping :meth:`iter_frames` uses, as lists of {channel: sample_data token}, anchor
         channel first (no file is read)."""
+        _check_sync_tolerance(sync_tolerance_us)
         return [
             {RADAR_CHANNELS[c]: self.tables.radar.token[r].decode() for c, r in g}
             for g in self._group_rows(self.scene(scene), ref_channel, sync_tolerance_us)
@@ -491,8 +545,24 @@ class NuScenesRadar:
 
         Empty sweeps are yielded (and counted in ``skip_counts``), but when every sweep of the
         scene's frames was empty, :class:`DataError` is raised after the last frame.
+
+        Arguments are checked at the call (:class:`DataError` / :class:`ConfigError`), not at
+        the first frame.
         """
         info = self.scene(scene)
+        _channel_index(ref_channel)
+        _check_sync_tolerance(sync_tolerance_us)
+        _check_filters(filters)
+        return self._iter_frames(info, key_frames_only, ref_channel, sync_tolerance_us, filters)
+
+    def _iter_frames(
+        self,
+        info: SceneInfo,
+        key_frames_only: bool,
+        ref_channel: str,
+        sync_tolerance_us: int | None,
+        filters: RadarPointFilter | None,
+    ) -> Iterator[RadarFrame]:
         before = dict(self.skip_counts.per_scene.get(info.name, {})) or None
         if key_frames_only:
             yield from self._iter_key_frames(info, ref_channel, filters)
@@ -577,8 +647,14 @@ class NuScenesRadar:
         s_row = small.sample_row.get(sample_token)
         if s_row is None:
             raise DataError(f"sample token {sample_token!r} is not in {self.tables.path('sample')}")
-        if nsweeps < 1:
-            raise ValueError(f"nsweeps must be >= 1, got {nsweeps}")
+        if isinstance(nsweeps, bool) or not isinstance(nsweeps, (int, np.integer)) or nsweeps < 1:
+            raise ConfigError(f"nsweeps must be an integer >= 1, got {nsweeps!r}")
+        if not _is_real(min_distance_m) or not np.isfinite(min_distance_m) or min_distance_m < 0:
+            raise ConfigError(
+                f"min_distance_m must be a finite number >= 0, got {min_distance_m!r}"
+            )
+        _check_filters(filters)
+        channels = _channel_list(channels)
         ch_idx = [_channel_index(c) for c in channels]
         kf = self._keyframe_rows().get(s_row, {})
         if ref_channel is not None:

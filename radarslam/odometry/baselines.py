@@ -59,6 +59,8 @@ class PlainKissIcpOdometry:
 
     def process(self, frame: RadarFrame) -> OdometryResult:
         t0 = time.perf_counter()
+        # DataError on a non-rigid / non-finite pose or calibration: kiss-icp would abort on it.
+        ground_truth = self._points.check_frame(frame)
         fit = self.doppler.fit_frame(frame)
         t1 = time.perf_counter()
         points = self._points.ego_points(frame, fit, fit.twist)
@@ -67,7 +69,7 @@ class PlainKissIcpOdometry:
         if first:
             self._kiss = self._make_kiss()
             if self.config.initial_pose == "ground_truth":
-                self._origin = planar(np.asarray(frame.world_from_ego, dtype=np.float64))
+                self._origin = planar(ground_truth)
         kiss = self._kiss
         # Re-orthonormalise before kiss-icp composes last_pose @ last_delta in numpy: Sophus aborts
         # the whole process on a rotation that is not orthogonal.
@@ -99,7 +101,7 @@ class PlainKissIcpOdometry:
             status="first" if first else status,
             num_points=len(points),
             timing=FrameTiming((t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3, (t3 - t0) * 1e3),
-            ground_truth=np.asarray(frame.world_from_ego, dtype=np.float64),
+            ground_truth=ground_truth,
             is_key_frame=bool(frame.is_key_frame),
             sample_token=frame.sample_token,
             scene_name=frame.scene_name,

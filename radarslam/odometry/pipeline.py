@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from radarslam.errors import DataError
-from radarslam.geometry import invert
+from radarslam.geometry import invert, rigid_problem
 from radarslam.odometry.config import OdometryConfig
 from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit
 from radarslam.odometry.lie import adjoint_se2, exp_jacobian_twist, exp_se2, log_se2, planar
@@ -151,6 +151,20 @@ def _sym(m: np.ndarray) -> np.ndarray:
     return 0.5 * (m + m.T)
 
 
+_F64 = np.dtype(np.float64)
+#: Distinct checked calibrations remembered per odometry object (5 radars; a dataset has a few).
+_MAX_CALIBRATIONS = 1024
+
+
+def _is_int_us(t) -> bool:
+    """Integer microseconds: an int (not bool), a numpy integer, or an integral float."""
+    return type(t) is int or isinstance(t, np.integer) or (isinstance(t, float) and t.is_integer())
+
+
+def _where(frame: RadarFrame) -> str:
+    return f"frame at {frame.timestamp_us!r} us (scene {frame.scene_name or '?'})"
+
+
 class RadarOdometry:
     """Streaming radar odometry: ``process(frame)`` once per frame, in time order."""
 
@@ -159,6 +173,10 @@ class RadarOdometry:
         self.doppler = DopplerEstimator(self.config.doppler)
         self._q = np.diag(np.square(self.config.fusion.process_noise))
         self._growth = np.diag(self.config.fusion.invalid_doppler_growth)
+        #: Bytes of the ego_from_sensor matrices already checked rigid: the calibration
+        #: of a radar repeats in every sweep, so each is checked once, not 5 times a frame.
+        self._good_calibrations: set[bytes | tuple[str, bytes]] = set()
+        self._checked_frame: RadarFrame | None = None  # checked by process(): skip in ego_points
         self.reset()
 
     def reset(self) -> None:
@@ -197,17 +215,80 @@ class RadarOdometry:
             refine_max_extrapolation=r.refine_max_extrapolation,
         )
 
+    # --- input checks -------------------------------------------------------------------------
+
+    def check_frame(self, frame: RadarFrame) -> np.ndarray:
+        """Check what odometry takes from ``frame`` besides the radar points, so that nothing
+        non-finite can reach kiss-icp (whose Sophus aborts the whole process on it): integer
+        timestamps, a rigid ``world_from_ego`` (ground truth, the first frame's initial pose) and
+        a rigid ``ego_from_sensor`` for every sweep (:func:`~radarslam.geometry.rigid_problem`).
+        :class:`DataError` naming the scene, timestamp and channel otherwise.
+
+        Returns ``world_from_ego`` as float64 (float32 input is converted, not kept)."""
+        if not isinstance(frame, RadarFrame):
+            raise TypeError(f"odometry expects a RadarFrame, got {type(frame).__name__}")
+        if not _is_int_us(frame.timestamp_us):
+            raise DataError(
+                f"{_where(frame)}: timestamp_us must be integer microseconds, got "
+                f"{type(frame.timestamp_us).__name__} {frame.timestamp_us!r}"
+            )
+        gt = frame.world_from_ego
+        why = rigid_problem(gt)
+        if why is not None:
+            raise DataError(f"{_where(frame)}: world_from_ego {why}")
+        if type(gt) is not np.ndarray or gt.dtype is not _F64:
+            gt = np.asarray(gt, dtype=np.float64)
+        good = self._good_calibrations
+        for ch, sweep in frame.sweeps.items():
+            cal = sweep.ego_from_sensor
+            # the usual case inlined (~0.5 us a sweep): a float64 calibration already checked
+            if not (
+                type(sweep.timestamp_us) is int
+                and type(cal) is np.ndarray
+                and cal.dtype is _F64
+                and cal.shape == (4, 4)
+                and cal.tobytes() in good
+            ):
+                self._check_sweep(frame, ch, sweep)
+        return gt
+
+    def _check_sweep(self, frame: RadarFrame, ch: str, sweep) -> None:
+        """One sweep's timestamp and calibration (a set lookup once its calibration was seen)."""
+        cal = sweep.ego_from_sensor
+        if type(cal) is np.ndarray and cal.shape == (4, 4):
+            key = cal.tobytes() if cal.dtype is _F64 else (cal.dtype.str, cal.tobytes())
+            if key in self._good_calibrations and _is_int_us(sweep.timestamp_us):
+                return
+        else:
+            key = None
+        if not _is_int_us(sweep.timestamp_us):
+            raise DataError(
+                f"{_where(frame)}: {ch} sweep timestamp_us must be integer microseconds, got "
+                f"{type(sweep.timestamp_us).__name__} {sweep.timestamp_us!r}"
+            )
+        why = rigid_problem(cal)
+        if why is not None:
+            raise DataError(f"{_where(frame)}: {ch} ego_from_sensor {why}")
+        if key is not None and len(self._good_calibrations) < _MAX_CALIBRATIONS:
+            self._good_calibrations.add(key)
+
     # --- points -------------------------------------------------------------------------------
 
     def ego_points(self, frame: RadarFrame, fit: EgoMotionFit, twist: np.ndarray) -> np.ndarray:
         """(M, 3) dynamic-free points of all radars in the ego frame at ``frame.timestamp_us``,
-        de-skewed with ``twist`` and lifted to z = 0."""
+        de-skewed with ``twist`` and lifted to z = 0.
+
+        Each sweep's timestamp and ``ego_from_sensor`` are checked as in :meth:`check_frame`
+        (unless :meth:`process` just did), so a bad calibration cannot make non-finite points."""
         pc = self.config.points
         chunks = []
+        checked = frame is self._checked_frame
         for ch, sweep in frame.sweeps.items():
             n = len(sweep)
             if n == 0:
                 continue
+            if not checked:
+                self._check_sweep(frame, ch, sweep)
             xy = sweep.xy
             rng = np.hypot(xy[:, 0], xy[:, 1])
             keep = np.isfinite(rng) & (rng >= pc.min_range_m) & (rng <= pc.max_range_m)
@@ -231,6 +312,9 @@ class RadarOdometry:
     def process(self, frame: RadarFrame) -> OdometryResult:
         t0 = time.perf_counter()
         cfg = self.config
+        # Before anything uses the frame: a NaN pose given to kiss-icp aborts the process.
+        ground_truth = self.check_frame(frame)
+        self._checked_frame = frame
         fit = self.doppler.fit_frame(frame)
         t1 = time.perf_counter()
 
@@ -256,16 +340,13 @@ class RadarOdometry:
         if not np.all(np.isfinite(twist)) or not np.all(np.isfinite(twist_cov)):
             twist, twist_cov = self._twist.copy(), self._twist_cov + self._growth
         points = self.ego_points(frame, fit, twist)
+        self._checked_frame = None
         t2 = time.perf_counter()
 
         first = self._pose is None
         if first:
             self._registration = self._new_registration()
-            pose = (
-                planar(np.asarray(frame.world_from_ego, dtype=np.float64))
-                if cfg.initial_pose == "ground_truth"
-                else np.eye(4)
-            )
+            pose = planar(ground_truth) if cfg.initial_pose == "ground_truth" else np.eye(4)
             pose_cov = np.zeros((3, 3))
             delta, delta_cov = np.eye(4), np.zeros((3, 3))
         else:
@@ -355,7 +436,7 @@ class RadarOdometry:
                 registration_ms=(t3 - t2) * 1e3,
                 total_ms=(t4 - t0) * 1e3,
             ),
-            ground_truth=np.asarray(frame.world_from_ego, dtype=np.float64),
+            ground_truth=ground_truth,
             is_key_frame=bool(frame.is_key_frame),
             sample_token=frame.sample_token,
             scene_name=frame.scene_name,

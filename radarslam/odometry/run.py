@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radarslam.errors import DataError
+from radarslam.errors import ConfigError, DataError
 from radarslam.odometry.config import OdometryConfig
 from radarslam.types import SceneInfo
 
@@ -89,14 +89,37 @@ def run_odometry(
     max_frames_per_scene: int | None = None,
 ) -> OdometryTrajectory:
     """Run ``method`` (``ours``, ``doppler`` or ``kiss-icp``) over ``scenes`` of a
-    :class:`~radarslam.nuscenes.reader.NuScenesRadar` and collect the per-frame estimates."""
+    :class:`~radarslam.nuscenes.reader.NuScenesRadar` and collect the per-frame estimates.
+
+    ``scenes``: names or :class:`SceneInfo` (one name or SceneInfo alone is one scene), each scene
+    at most once (:class:`DataError` otherwise: its frames would repeat timestamps)."""
     from radarslam.nuscenes.filters import RadarPointFilter
     from radarslam.odometry.baselines import make_odometry
 
     config = config or OdometryConfig()
     pc = config.points
     filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+    if isinstance(scenes, (str, SceneInfo)):
+        scenes = [scenes]  # one scene, not a sequence of characters
     infos = [reader.scene(s) for s in scenes]  # unknown names fail before any work
+    if not infos:
+        raise DataError("run_odometry: no scene given")
+    if max_frames_per_scene is not None and (
+        isinstance(max_frames_per_scene, bool)
+        or not isinstance(max_frames_per_scene, (int, np.integer))
+        or max_frames_per_scene < 1
+    ):
+        raise ConfigError(
+            f"max_frames_per_scene must be an integer >= 1 or None, got {max_frames_per_scene!r}"
+        )
+    seen: set[str] = set()
+    for info in infos:
+        if info.name in seen:
+            raise DataError(
+                f"scene {info.name!r} is given more than once; each scene can be run once "
+                "(its frames would repeat timestamps)"
+            )
+        seen.add(info.name)
     odo = make_odometry(method, config)
     rows: dict[str, list] = {k: [] for k in _ROW_KEYS}
     kf: dict[int, tuple[np.ndarray, np.ndarray]] = {}

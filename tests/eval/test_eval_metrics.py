@@ -152,3 +152,74 @@ def test_bad_inputs_are_data_errors():
     bad[3, 0] = np.nan
     with pytest.raises(DataError, match="non-finite"):
         ate(bad, ref)
+
+
+def _est_gt(n=60):
+    ts = 1_533_152_744_702_540 + np.arange(n, dtype=np.int64) * 100_000
+    ref = np.column_stack(
+        [1000 + 2.0 * np.arange(n), 500 + 0.05 * np.arange(n) ** 2, 0.02 * np.arange(n)]
+    )
+    return ts, _poses(_noisy(ref, sigma=(0.1, 0.1, 0.001))), _poses(ref)
+
+
+@pytest.mark.parametrize(
+    ("stamps", "match"),
+    [
+        (
+            lambda ts: ts / 1e6,
+            r"timestamp 0 is 1533152744\.70254, which has a fractional part; "
+            r"timestamps_us must be integer microseconds \(seconds given",
+        ),
+        (lambda ts: ts + 0.7, r"timestamp 0 is 1533152744702540\.8, which has a fractional"),
+        (lambda ts: np.full(len(ts), np.nan), "timestamp 0 is nan; timestamps_us must be finite"),
+        (lambda ts: ["x"] * len(ts), "timestamps_us must be integer microseconds, got <U1 .* 'x'"),
+        (lambda ts: np.ones(len(ts), dtype=bool), "timestamps_us must be integer .*, got bool"),
+        (lambda ts: ts[::-1], r"timestamps_us are not sorted \(timestamp 1, \d+ us, is earlier"),
+        (lambda ts: ts + 2**62, r"timestamp \d+ \(\d+ us\) is out of range"),
+    ],
+)
+def test_rpe_in_seconds_rejects_timestamps_that_are_not_integer_microseconds(stamps, match):
+    ts, est, gt = _est_gt()
+    assert rpe(est, gt, ts, 1.0, "s").count == 50
+    assert rpe(est, gt, ts.astype(float), 1.0, "s").count == 50  # integral floats are fine
+    with pytest.raises(DataError, match="RPE: " + match):
+        rpe(est, gt, stamps(ts), 1.0, "s")
+
+
+def test_rpe_delta_must_be_a_number_and_huge_delta_gives_no_pair():
+    ts, est, gt = _est_gt()
+    with pytest.raises(DataError, match="RPE: delta must be a number, got str '1'"):
+        rpe(est, gt, ts, "1", "s")
+    assert rpe(est, gt, ts, 1e300, "s").count == 0
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        (lambda p: p @ np.diag([3.0, 3.0, 3.0, 1.0]), r"estimate: pose 0 has a non-orthonormal"),
+        (lambda p: p @ np.diag([1.0, -1.0, 1.0, 1.0]), r"estimate: pose 0 has a reflection"),
+        (
+            lambda p: np.where(np.arange(len(p))[:, None, None] == 3, np.nan, p),
+            "estimate: pose 3 has non-finite entries",
+        ),
+    ],
+)
+def test_metrics_reject_non_rigid_poses(damage, match):
+    ts, est, gt = _est_gt()
+    for fn in (lambda e: ate(e, gt), lambda e: rpe(e, gt, ts), lambda e: drift(e, gt, 20.0)):
+        with pytest.raises(DataError, match=match):
+            fn(damage(est))
+    assert ate(est.astype(np.float32), gt).rmse_m == pytest.approx(ate(est, gt).rmse_m, abs=1e-4)
+
+
+def test_drift_arguments():
+    _, est, gt = _est_gt()
+    assert drift(est, gt, 50.0) == drift(est, gt, (50.0,))  # a bare length is one length
+    assert drift(est, gt, (50.0,), step_frames=np.int64(2)).num_segments > 0
+    for step in (1.5, True, "2"):
+        with pytest.raises(DataError, match=f"step_frames must be an integer >= 1, got .*{step!r}"):
+            drift(est, gt, (50.0,), step_frames=step)
+    with pytest.raises(DataError, match="step_frames must be >= 1, got 0"):
+        drift(est, gt, (50.0,), step_frames=0)
+    with pytest.raises(DataError, match="segment lengths must be numbers in metres, got 'abc'"):
+        drift(est, gt, "abc")

@@ -112,3 +112,89 @@ def test_binary_tum_is_a_data_error(tmp_path):
     path.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe" * 10)
     with pytest.raises(DataError, match=r"bin\.tum: not a text trajectory file"):
         read_tum(path)
+
+
+def _se2_poses(n: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    ts = 1_533_152_744_702_540 + np.arange(n, dtype=np.int64) * 500_000
+    poses = np.stack(
+        [se2_to_matrix(1000.0 + 2 * i, 500.0 + 0.1 * i * i, 0.02 * i) for i in range(n)]
+    )
+    return ts, poses
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        (lambda p: p @ np.diag([2.0, 2.0, 2.0, 1.0]), r"pose 0 has a non-orthonormal rotation"),
+        (lambda p: p @ np.diag([1.0, 1.0, -1.0, 1.0]), r"pose 0 has a reflection .*det -1"),
+        (
+            lambda p: p + np.pad([[0, 0.5, 0], [0, 0, 0], [0, 0, 0]], ((0, 1), (0, 1))),
+            r"pose 0 has a non-orthonormal rotation block \(scaled or skewed",
+        ),
+        (
+            lambda p: np.concatenate(
+                [p[:, :3], np.tile([[[1.0, 2.0, 3.0, 4.0]]], (len(p), 1, 1))], 1
+            ),
+            r"pose 0 has bottom row \[1\.0, 2\.0, 3\.0, 4\.0\], expected \[0, 0, 0, 1\]",
+        ),
+    ],
+)
+def test_writers_reject_poses_the_readers_would_reject(tmp_path, damage, match):
+    ts, poses = _se2_poses()
+    bad = damage(poses)
+    with pytest.raises(DataError, match=r"x\.tum: " + match):
+        write_tum(tmp_path / "x.tum", ts, bad)
+    with pytest.raises(DataError, match=r"x\.kitti: " + match):
+        write_kitti(tmp_path / "x.kitti", bad)
+    assert not (tmp_path / "x.tum").exists() and not (tmp_path / "x.kitti").exists()
+
+
+@pytest.mark.parametrize(
+    ("stamps", "match"),
+    [
+        (lambda ts: ts[::-1], r"timestamp 1 \(\d+ us\) is earlier than the previous one"),
+        (lambda ts: np.zeros(len(ts), dtype=np.int64), r"timestamp 1 \(0 us\) repeats the prev"),
+        (
+            lambda ts: np.ones(len(ts), dtype=bool),
+            "timestamps_us must be integer microseconds, got bool",
+        ),
+        (lambda ts: ["a"] * len(ts), "timestamps_us must be .*got <U1 values such as 'a'"),
+        (lambda ts: ts / 1e6, r"timestamp 0 is 1533152744\.70254; .*seconds given"),
+        (lambda ts: np.full(len(ts), np.nan), "timestamp 0 is nan; timestamps_us must be finite"),
+    ],
+)
+def test_write_tum_rejects_bad_timestamps(tmp_path, stamps, match):
+    ts, poses = _se2_poses()
+    with pytest.raises(DataError, match=r"x\.tum: " + match):
+        write_tum(tmp_path / "x.tum", stamps(ts), poses)
+
+
+def test_writers_convert_float32_and_lists_to_float64(tmp_path):
+    ts, poses = _se2_poses()
+    write_tum(tmp_path / "a.tum", ts.astype(float), poses.astype(np.float32))
+    ts2, poses2 = read_tum(tmp_path / "a.tum")
+    assert poses2.dtype == np.float64 and np.array_equal(ts2, ts)
+    np.testing.assert_allclose(poses2, poses.astype(np.float32), atol=1e-9)
+    write_kitti(tmp_path / "a.kitti", poses.tolist())
+    assert np.array_equal(read_kitti(tmp_path / "a.kitti"), poses)
+    with pytest.raises(DataError, match=r"a\.tum: poses must be a numeric \(N, 4, 4\) array"):
+        write_tum(tmp_path / "a.tum", ts, [["a"]])
+
+
+@pytest.mark.parametrize(
+    ("stamp", "match"),
+    [
+        ("1e400", r"bad\.tum:1: timestamp '1e400' s is out of range"),
+        ("9.3e12", r"bad\.tum:1: timestamp '9\.3e12' s is out of range"),
+        ("-1e999999999", r"bad\.tum:1: timestamp '-1e999999999' s is out of range"),
+        ("inf", r"bad\.tum:1: bad timestamp 'inf'"),
+        ("1.5s", r"bad\.tum:1: bad timestamp '1\.5s'"),
+    ],
+)
+def test_read_tum_timestamp_out_of_range_or_not_a_number(tmp_path, stamp, match):
+    path = tmp_path / "bad.tum"
+    path.write_text(f"{stamp} 0 0 0 0 0 0 1\n")
+    with pytest.raises(DataError, match=match):
+        read_tum(path)
+    path.write_text("9.2e12 0 0 0 0 0 0 1\n")  # the largest order of magnitude int64 us holds
+    assert read_tum(path)[0].tolist() == [9_200_000_000_000_000_000]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from mini_dataroot import MOUNTS, PERIOD_US, VERSION, ego_from_sensor
 
-from radarslam.errors import DataError
+from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert
 from radarslam.nuscenes.filters import RadarPointFilter
 from radarslam.nuscenes.pcd import pcd_bytes
@@ -351,3 +351,76 @@ def test_stack_in_reference_is_each_sweep_transformed_then_concatenated():
     for name in ACCUMULATED_DTYPE.names:
         np.testing.assert_allclose(got[name], want[name], rtol=1e-6, atol=1e-9, err_msg=name)
     assert len(stack_in_reference([])) == 0
+
+
+# ---- argument checks -----------------------------------------------------------------------------
+def test_scene_info_of_another_dataset_is_a_data_error(mini, reader, clone):
+    import dataclasses
+
+    info = reader.scene("scene-0001")
+    assert reader.scene(info) is info and reader.samples(info) == mini.samples["scene-0001"]
+    # another dataroot holding a scene of the same name under another token
+    root = clone()
+    for path in (root / VERSION).glob("*.json"):
+        path.write_text(path.read_text().replace(info.token, "0" * 32))
+    other = NuScenesRadar(root, VERSION, use_cache=False).scene("scene-0001")
+    assert other.name == info.name and other.token != info.token
+    match = (
+        f"scene 'scene-0001' \\(token '{'0' * 32}'\\) is not a scene of .*{VERSION} \\(its "
+        f"'scene-0001' has token '{info.token}'\\)"
+    )
+    for call in (
+        lambda s: reader.samples(s),
+        lambda s: reader.iter_frames(s),
+        lambda s: reader.frame_groups(s),
+        lambda s: list(reader.iter_sweeps(s, "RADAR_FRONT")),
+    ):
+        with pytest.raises(DataError, match=match):
+            call(other)
+    fake = dataclasses.replace(info, name="scene-fake")
+    with pytest.raises(DataError, match=r"scene 'scene-fake' .* \(no such name\)"):
+        reader.iter_frames(fake)
+    with pytest.raises(DataError, match="scene must be a scene name or a SceneInfo, got int 3"):
+        reader.samples(3)
+
+
+@pytest.mark.parametrize("tol", [-5, 0, float("nan"), float("inf"), "38000", True])
+def test_bad_sync_tolerance_is_a_config_error(reader, tol):
+    with pytest.raises(ConfigError, match=f"sync_tolerance_us must be .*got {tol!r}"):
+        reader.iter_frames("scene-0001", sync_tolerance_us=tol)  # at the call, not on next()
+    with pytest.raises(ConfigError, match="sync_tolerance_us"):
+        reader.frame_groups("scene-0001", sync_tolerance_us=tol)
+
+
+def test_bad_filters_are_a_config_error(mini, reader):
+    match = "filters must be a RadarPointFilter or None, got str 'none'"
+    with pytest.raises(ConfigError, match=match):
+        reader.iter_frames("scene-0001", filters="none")
+    with pytest.raises(ConfigError, match=match):
+        list(reader.iter_sweeps("scene-0001", "RADAR_FRONT", filters="none"))
+    sample = mini.samples["scene-0003"][2]
+    with pytest.raises(ConfigError, match=match):
+        reader.accumulate(sample, filters="none")
+    with pytest.raises(ConfigError, match=match):
+        reader.load_sweep(mini.keyframes[sample]["RADAR_FRONT"], filters="none")
+
+
+def test_accumulate_arguments(mini, reader):
+    sample = mini.samples["scene-0003"][2]
+    one = reader.accumulate(sample, channels="RADAR_FRONT")  # a bare name is one channel
+    assert (
+        one.num_points_per_sweep
+        == reader.accumulate(sample, channels=["RADAR_FRONT"]).num_points_per_sweep
+    )
+    assert {c for c, _ in one.num_points_per_sweep} == {"RADAR_FRONT"}
+    assert len(reader.accumulate(sample, nsweeps=np.int64(2))) > 0
+    for n in (0, 2.5, "3", True):
+        with pytest.raises(ConfigError, match=f"nsweeps must be an integer >= 1, got {n!r}"):
+            reader.accumulate(sample, nsweeps=n)
+    for d in (-1, float("nan"), "1"):
+        with pytest.raises(
+            ConfigError, match=f"min_distance_m must be a finite number >= 0, got {d!r}"
+        ):
+            reader.accumulate(sample, min_distance_m=d)
+    with pytest.raises(ConfigError, match="channels must be a radar channel name or a list"):
+        reader.accumulate(sample, channels=5)

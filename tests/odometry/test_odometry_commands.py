@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 from typer.testing import CliRunner
 
 from radarslam.cli import app
@@ -75,3 +76,25 @@ def test_a_folder_holding_other_things_is_not_replaced(tmp_path):
     assert isinstance(result.exception, DataError)
     assert str(result.exception).startswith(f"{out}: holds 'notes.txt', which is not a file")
     assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_run_odometry_scene_arguments(tiny_dataroot):
+    import pytest
+
+    from radarslam.errors import ConfigError
+    from radarslam.nuscenes.reader import NuScenesRadar
+    from radarslam.odometry.run import run_odometry
+
+    reader = NuScenesRadar(tiny_dataroot, "v1.0-mini")
+    name = reader.scenes()[0].name
+    one = run_odometry(reader, name, progress=False, max_frames_per_scene=4)  # not per character
+    assert len(one) == 4 and set(one.scene_names) == {name}
+    info = run_odometry(reader, reader.scene(name), progress=False, max_frames_per_scene=4)
+    assert np.array_equal(info.poses, one.poses)
+    with pytest.raises(DataError, match=f"scene '{name}' is given more than once"):
+        run_odometry(reader, [name, reader.scene(name)], progress=False)
+    with pytest.raises(DataError, match="run_odometry: no scene given"):
+        run_odometry(reader, [], progress=False)
+    for bad in (0, -3, 2.5):
+        with pytest.raises(ConfigError, match=f"max_frames_per_scene must be .*got {bad!r}"):
+            run_odometry(reader, name, progress=False, max_frames_per_scene=bad)

@@ -279,3 +279,80 @@ def test_identity_initial_pose_and_plain_kiss_guard(world):
     kiss.process(frames[0])
     kiss._kiss.last_delta = kiss._kiss.last_delta * 1.01
     assert_sane([kiss.process(f) for f in frames[1:]], covariances=False)
+
+
+# --- input checks: a bad pose is a DataError, never kiss-icp's abort ---------------------------
+
+
+def _with_gt(frame, pose):
+    return dataclasses.replace(frame, world_from_ego=pose)
+
+
+def _with_calibration(frame, channel, pose):
+    sweep = dataclasses.replace(frame.sweeps[channel], ego_from_sensor=pose)
+    return dataclasses.replace(frame, sweeps={**frame.sweeps, channel: sweep})
+
+
+_SCALED = np.diag([2.0, 2.0, 2.0, 1.0])
+
+
+@pytest.mark.parametrize("method", ["ours", "kiss-icp"])
+@pytest.mark.parametrize(
+    ("k", "damage", "match"),
+    [
+        # the first frame's world_from_ego is the initial pose kiss-icp gets (NaN: abort, exit 134)
+        (0, lambda f: _with_gt(f, np.full((4, 4), np.nan)), "world_from_ego has non-finite"),
+        (0, lambda f: _with_gt(f, np.eye(3)), r"world_from_ego has shape \(3, 3\)"),
+        (
+            0,
+            lambda f: _with_gt(f, f.world_from_ego @ _SCALED),
+            "world_from_ego has a non-orthonormal",
+        ),
+        (2, lambda f: _with_gt(f, np.full((4, 4), np.nan)), "world_from_ego has non-finite"),
+        (
+            2,
+            lambda f: _with_calibration(f, "RADAR_FRONT", np.full((4, 4), np.nan)),
+            "RADAR_FRONT ego_from_sensor has non-finite entries",
+        ),
+        (
+            0,
+            lambda f: _with_calibration(f, "RADAR_BACK_LEFT", np.diag([1.0, -1.0, 1.0, 1.0])),
+            r"RADAR_BACK_LEFT ego_from_sensor has a reflection",
+        ),
+        (
+            2,
+            lambda f: dataclasses.replace(f, timestamp_us=f.timestamp_us + 0.5),
+            r"timestamp_us must be integer microseconds, got float 1600000000153846\.5",
+        ),
+        (
+            2,
+            lambda f: dataclasses.replace(f, timestamp_us=float("nan")),
+            "timestamp_us must be integer microseconds, got float nan",
+        ),
+    ],
+)
+def test_bad_frame_inputs_are_data_errors_not_crashes(world, method, k, damage, match):
+    frames = drive(world, np.random.default_rng(11), num_frames=5, **NOISE)
+    odo = make_odometry(method)
+    for f in frames[:k]:
+        odo.process(f)
+    bad = damage(frames[k])
+    with pytest.raises(DataError, match=rf"frame at .* us \(scene synthetic\): .*{match}") as err:
+        odo.process(bad)
+    assert str(err.value).startswith(f"frame at {bad.timestamp_us!r} us (scene synthetic): ")
+    # nothing was taken in: the same odometry goes on with the good frames
+    res = [odo.process(f) for f in frames[k:]]
+    assert_sane(res, covariances=method != "kiss-icp")
+
+
+def test_process_checks_each_calibration_once_and_converts_float32(world):
+    frames = drive(world, np.random.default_rng(12), num_frames=8, **NOISE)
+    odo = RadarOdometry()
+    res = [odo.process(f) for f in frames]
+    assert len(odo._good_calibrations) == 5  # one per radar, not one per sweep
+    f32 = _with_gt(frames[0], frames[0].world_from_ego.astype(np.float32))
+    r = RadarOdometry().process(f32)
+    assert r.ground_truth.dtype == np.float64 and r.world_from_ego.dtype == np.float64
+    np.testing.assert_allclose(r.world_from_ego, res[0].world_from_ego, atol=1e-4)
+    with pytest.raises(TypeError, match="odometry expects a RadarFrame, got NoneType"):
+        odo.process(None)
