@@ -7,6 +7,7 @@ as the reference's sklearn kNN that feeds RCSHR.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +30,15 @@ def _as_matrix(x: np.ndarray, what: str) -> np.ndarray:
     if x.size and not np.all(np.isfinite(x)):
         raise DataError(f"{what} contain NaN or infinity")
     return x
+
+
+def check_k(k, what: str = "k") -> int:
+    """``k`` as an int; anything but an integer >= 1 (bool excluded) is a DataError naming it."""
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Integral):
+        raise DataError(f"{what} must be an integer >= 1, got {k!r} ({type(k).__name__})")
+    if k < 1:
+        raise DataError(f"{what} must be an integer >= 1, got {k}")
+    return int(k)
 
 
 class DescriptorIndex:
@@ -57,12 +67,21 @@ class DescriptorIndex:
 
     @property
     def matrix(self) -> np.ndarray:
+        """The (N, D) float32 database, as a read-only view (no copy: a database can be large,
+        and writing into it would silently change later searches)."""
+        view = self._full().view()
+        view.setflags(write=False)
+        return view
+
+    def _full(self) -> np.ndarray:
         if self._matrix is None:
             if self._chunks:
                 self._matrix = np.concatenate(self._chunks)
                 self._chunks = [self._matrix]
             else:
                 self._matrix = np.zeros((0, self.dim), np.float32)
+            # the array itself is read-only too, so that no view of it can be made writable
+            self._matrix.setflags(write=False)
         return self._matrix
 
     def add(self, descriptors: np.ndarray) -> None:
@@ -90,16 +109,15 @@ class DescriptorIndex:
         q = _as_matrix(np.atleast_2d(queries), "query descriptors")
         if q.shape[1] != self.dim:
             raise DataError(f"query dimension {q.shape[1]} != index dimension {self.dim}")
-        n = len(self)
-        k = int(min(k, n))
-        if n == 0 or k <= 0:
+        k = min(check_k(k), len(self))
+        if k == 0:
             return SearchResult(np.zeros((len(q), 0), np.int64), np.zeros((len(q), 0)))
         if self._use_faiss():
             return self._search_faiss(q, k)
         return self._search_numpy(q, k)
 
     def _search_numpy(self, q: np.ndarray, k: int) -> SearchResult:
-        db = self.matrix
+        db = self._full()
         db_sq = np.einsum("ij,ij->i", db, db, dtype=np.float64)
         out_i = np.empty((len(q), k), np.int64)
         out_d = np.empty((len(q), k), np.float64)
@@ -126,7 +144,7 @@ class DescriptorIndex:
             raise ConfigError("retrieval.backend='faiss' but faiss-cpu is not installed") from None
         if self._faiss is None:
             index = faiss.IndexFlatL2(self.dim)
-            index.add(np.ascontiguousarray(self.matrix, dtype=np.float32))
+            index.add(np.ascontiguousarray(self._full(), dtype=np.float32))
             self._faiss = index
         d2, idx = self._faiss.search(np.ascontiguousarray(q, dtype=np.float32), k)
         return SearchResult(idx.astype(np.int64), np.sqrt(np.maximum(d2, 0.0)).astype(np.float64))

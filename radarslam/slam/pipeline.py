@@ -58,7 +58,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from radarslam.errors import DataError
+from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert, se2_to_matrix, wrap_angle
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.records import LoopCandidate, NodeKey
@@ -334,6 +334,10 @@ class SlamPipeline:
         self.recognizer = recognizer
         if self.recognizer is None and cfg.loops.enabled:
             self.recognizer = load_recognizer(cfg.loops.checkpoint, cfg.loops.recognizer_config)
+        if self.recognizer is not None:
+            self._check_recognizer_reference(loaded=recognizer is None)
+        #: run() is single-use: a second call would mix its sessions into this one's state
+        self._ran = False
         self.sessions: dict[str, _Session] = {}
         self.groups: dict[int, _Group] = {}
         #: Verified loops between two groups, waiting for a consistent partner to merge them.
@@ -349,13 +353,26 @@ class SlamPipeline:
 
     # --- the run ---------------------------------------------------------------------------------
 
-    def run(self, scenes: Iterable[str | SceneInfo]) -> SlamResult:
+    def run(self, scenes: str | SceneInfo | Iterable[str | SceneInfo]) -> SlamResult:
+        """SLAM over ``scenes`` (one scene or several, the first one the map), once per pipeline:
+        a pipeline holds the state of its run, so a second call is an error."""
+        if self._ran:
+            raise DataError("SlamPipeline.run() may be called once; create a new pipeline")
+        if isinstance(scenes, (str, SceneInfo)):
+            scenes = [scenes]
+        try:
+            scenes = list(scenes)
+        except TypeError:
+            raise DataError(
+                f"scenes must be a scene name or a list of them, got {type(scenes).__name__}"
+            ) from None
         infos = [self.reader.scene(s) for s in scenes]  # unknown names fail before any work
         if not infos:
             raise DataError("no scene to run SLAM on")
         names = [i.name for i in infos]
         if len(set(names)) != len(names):
             raise DataError(f"scene listed twice in {names}")
+        self._ran = True  # from here on the pipeline's state changes
         bar = self._progress_bar(infos)
         try:
             if self.config.pipelined and _can_fork():
@@ -389,6 +406,23 @@ class SlamPipeline:
         self.graph.optimize_batch()
         self.timings.final_optimization_s += time.perf_counter() - t0
         return self._result()
+
+    def _check_recognizer_reference(self, loaded: bool) -> None:
+        """The key frames are accumulated in the frame of ``key_frames.ref_channel``; the
+        recognizer's images must be centred on the same radar (else every key frame fails)."""
+        acc = getattr(getattr(self.recognizer, "config", None), "accumulation", None)
+        want = getattr(acc, "ref_channel", None)
+        have = self.config.key_frames.ref_channel
+        if want is not None and want != have:
+            source = (
+                f"recognizer config {self.config.loops.recognizer_config}"
+                if loaded and self.config.loops.recognizer_config is not None
+                else "the place recognizer"
+            )
+            raise ConfigError(
+                f"key_frames.ref_channel={have} but {source} centres its images on {want} "
+                "(accumulation.ref_channel); both must name the same radar"
+            )
 
     # --- the odometry side: frames -> key-frame clouds -------------------------------------------
 

@@ -161,6 +161,10 @@ def test_bad_databases_are_one_line_data_errors(clouds, tmp_path):
             r"nan\.npz: descriptors contain NaN",
         ),
         "fewdesc.npz": ({"descriptors": desc[:2]}, r"fewdesc\.npz: 3 keys, 2 descriptors"),
+        "dbsm.npz": (
+            {"rcs01": np.linspace(-10.0, 30.0, offsets[-1]).astype(np.float32)},
+            r"dbsm\.npz: rcs01 must lie in \[0, 1\] \(normalised RCS\), got values in \[-10, 30\]",
+        ),
     }
     for name, (spec, message) in cases.items():
         path = tmp_path / name
@@ -250,3 +254,151 @@ def test_device_is_validated_before_loading(tmp_path):
                             config=PlaceRecognizerConfig(device="cuda"))  # fmt: skip
     rec = PlaceRecognizer(model=RandomProjection(), config=PlaceRecognizerConfig(device="auto"))
     assert rec.device.type in ("cpu", "cuda")
+
+
+# ---- input checks of the database API ---------------------------------------------------------
+def _small_db(clouds, n=4, **cfg):
+    rec = PlaceRecognizer(model=RandomProjection(), config=PlaceRecognizerConfig(seq_len=2, **cfg))
+    for token, seq in clouds[:n]:
+        rec.add(seq, key=token)
+    return rec
+
+
+def test_feature_cache_never_returns_features_of_changed_points(clouds):
+    """The per-frame cache is keyed by a fingerprint of the points: a cloud changed in place, or
+    another cloud under the same token with as many points, is encoded again; the same content
+    (a new cloud object over the same points, as the SLAM pipeline makes) is a cache hit."""
+    import dataclasses
+
+    from place_recognition.models import build_model, load_model_config
+
+    torch.manual_seed(0)
+    cfg = load_model_config("compact_se_te").model_copy(update={"seq_len": 2})
+    model = build_model(cfg).eval()
+    rec = PlaceRecognizer(model=model, config=PlaceRecognizerConfig())
+    fresh = PlaceRecognizer(model=model, config=PlaceRecognizerConfig())
+    encoded = []
+    encode = rec._encode
+    rec._encode = lambda images: encoded.append(len(images)) or encode(images)
+    old, cloud = (dataclasses.replace(c, points=c.points.copy()) for c in clouds[3][1])
+    d0, _ = rec.describe([old, cloud])
+    assert len(encoded) == 2
+    same = dataclasses.replace(cloud, points=cloud.points)  # new object, same content
+    np.testing.assert_array_equal(rec.describe([old, same])[0], d0)
+    assert len(encoded) == 2, "same content: both frames from the cache"
+    cloud.points["x"] += 30.0  # changed in place after it was described
+    d1, _ = rec.describe([old, cloud])
+    assert len(encoded) == 3 and not np.array_equal(d1, d0)
+    np.testing.assert_array_equal(d1, fresh.describe([old, cloud])[0])
+    moved = cloud.points.copy()
+    moved["y"] -= 12.0  # same token, timestamp and point count, other points
+    other = dataclasses.replace(cloud, points=moved)
+    d2, _ = rec.describe([old, other])
+    np.testing.assert_array_equal(d2, fresh.describe([old, other])[0])
+    assert not np.array_equal(d2, d1)
+
+
+def test_exclude_takes_one_key_or_a_collection(clouds):
+    from radarslam.slam.records import NodeKey
+
+    rec = _small_db(clouds)
+    seq = clouds[1][1]
+    best = rec.query(seq, k=1)[0].key
+    assert isinstance(best, str)
+    for one in (best, [best], {best}, (best,)):  # a str is one key, not its characters
+        assert best not in [c.key for c in rec.query(seq, k=4, exclude=one)]
+    desc, rcs = rec.describe(seq)
+    tup = PlaceRecognizer(model=RandomProjection(), config=PlaceRecognizerConfig(seq_len=2))
+    tup.add_descriptor(desc, rcs, ("scene-1", 3))
+    tup.add_descriptor(desc + 1.0, rcs, "scene-1")
+    tup.add_descriptor(desc + 2.0, rcs, NodeKey("scene-1", 3))
+    keys = lambda ex: [c.key for c in tup.query_descriptor(desc, rcs, k=3, exclude=ex)]  # noqa: E731
+    assert keys(("scene-1", 3)) == ["scene-1", NodeKey("scene-1", 3)]  # a tuple key: one key
+    assert keys(NodeKey("scene-1", 3)) == [("scene-1", 3), "scene-1"]
+    assert keys(("scene-1", "x")) == [("scene-1", 3), NodeKey("scene-1", 3)]  # not a key: keys
+    with pytest.raises(DataError, match=r"exclude: key \[1\] is not hashable"):
+        tup.query_descriptor(desc, rcs, exclude=[[1]])
+
+
+def test_rcs_values_must_be_normalised(clouds, tmp_path):
+    import dataclasses
+
+    rec = _small_db(clouds)
+    desc, rcs = rec.describe(clouds[1][1])
+    assert rcs.min() >= 0.0 and rcs.max() <= 1.0  # what describe makes always passes
+    before = rec.query_descriptor(desc, rcs, k=3)
+    cases = [
+        (rcs * 40.0 - 10.0, r"rcs01 must lie in \[0, 1\] \(normalised RCS\), got .* \[-10, 30\]"),
+        (np.full_like(rcs, np.nan), "rcs01 contains NaN or infinity"),
+        (rcs[None], r"rcs01 must be a 1-D number array .*got shape \(1, \d+\)"),
+        (None, r"rcs01 must be a 1-D number array .*got shape \(\)"),
+    ]  # fmt: skip
+    for bad, message in cases:
+        with pytest.raises(DataError, match=message):
+            rec.query_descriptor(desc, bad)
+        with pytest.raises(DataError, match=message):
+            rec.add_descriptor(desc, bad, "bad")
+    assert len(rec) == 4 and len(rec._index) == 4 and "bad" not in rec.keys
+    assert rec.query_descriptor(desc, rcs, k=3) == before
+    # a key frame without points: empty RCS values are legal, to query and to add
+    cloud = clouds[1][1][-1]
+    empty = dataclasses.replace(cloud, points=cloud.points[:0], sample_token="")
+    d_empty, r_empty = rec.describe(empty)
+    assert r_empty.shape == (0,)
+    assert len(rec.query_descriptor(d_empty, r_empty, k=2)) == 2
+    rec.add(empty, key="empty")
+    loaded = PlaceRecognizer.load(rec.save(tmp_path / "db.npz"), model=RandomProjection())
+    assert loaded.keys == rec.keys
+    # the caller's array is copied: changing it later changes nothing stored
+    mine = rcs.copy()
+    rec.add_descriptor(desc, mine, "mine")
+    mine[:] = 5.0
+    again = PlaceRecognizer.load(rec.save(tmp_path / "db2.npz"), model=RandomProjection())
+    np.testing.assert_array_equal(again._rcs[-1], rcs)
+
+
+def test_k_descriptor_and_key_checks(clouds, tmp_path):
+    from radarslam.slam.records import NodeKey
+
+    rec = _small_db(clouds)
+    desc, rcs = rec.describe(clouds[1][1])
+    for k in (2.5, "3", True, 0, -1, None):
+        with pytest.raises(DataError, match=rf"k must be an integer >= 1, got {k!r}"):
+            rec.query_descriptor(desc, rcs, k=k)
+    assert len(rec.query_descriptor(desc, rcs, k=np.int64(2))) == 2
+    with pytest.raises(
+        DataError, match=r"expected one descriptor of 32 values, got shape \(2, 32\)"
+    ):
+        rec.query_descriptor(np.stack([desc, desc]), rcs)
+    with pytest.raises(DataError, match="expected one descriptor of 32 values, got 10"):
+        rec.add_descriptor(desc[:10], rcs, "short")
+    assert len(rec.query_descriptor(desc[None], rcs, k=1)) == 1  # (1, D) is one descriptor
+    # an empty database checks the descriptor too
+    empty = PlaceRecognizer(model=RandomProjection(), config=PlaceRecognizerConfig(seq_len=2))
+    assert empty.query_descriptor(desc, rcs) == []
+    with pytest.raises(DataError, match="descriptor contains NaN"):
+        empty.query_descriptor(np.full_like(desc, np.nan), rcs)
+    with pytest.raises(DataError, match=r"got shape \(2, 32\)"):
+        empty.query_descriptor(np.stack([desc, desc]), rcs)
+    with pytest.raises(DataError, match=r"k must be an integer >= 1, got 2\.5"):
+        empty.query_descriptor(desc, rcs, k=2.5)
+    # keys: hashable, and what save() writes must come back equal
+    cases = [
+        (["a"], r"place key \['a'\] is not hashable \(list\)"),
+        (np.int64(5), r"place key np\.int64\(5\) \(int64\) cannot be saved"),
+        (float("nan"), r"place key nan \(float\) cannot be saved"),
+        (("a", ("b",)), r"place key \('a', \('b',\)\) \(tuple\) cannot be saved"),
+    ]
+    for key, message in cases:
+        with pytest.raises(DataError, match=message):
+            rec.add_descriptor(desc, rcs, key)
+    assert len(rec) == 4 and len(rec._index) == 4
+    for key in (5, 2.5, None, ("scene", 1)):
+        rec.add_descriptor(desc, rcs, key)
+    loaded = PlaceRecognizer.load(rec.save(tmp_path / "db.npz"), model=RandomProjection())
+    assert loaded.keys == rec.keys
+    # in-memory keys such as the SLAM pipeline's NodeKey: added, but save names them
+    rec.add_descriptor(desc, rcs, NodeKey("scene-1", 3))
+    with pytest.raises(DataError, match=r"db3\.npz: place key NodeKey\(.*\) cannot be saved"):
+        rec.save(tmp_path / "db3.npz")
+    assert not (tmp_path / "db3.npz").exists()

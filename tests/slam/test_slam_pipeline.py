@@ -7,7 +7,7 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
-from radarslam.errors import CheckpointError, DataError
+from radarslam.errors import CheckpointError, ConfigError, DataError
 from radarslam.geometry import invert, se2_to_matrix
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.pipeline import SlamPipeline, load_recognizer
@@ -265,6 +265,33 @@ def test_bad_inputs_are_clear_errors(reader, tmp_path):
         load_recognizer(str(tmp_path / "missing.pt"), None)
 
 
+def test_run_takes_one_scene_name_and_runs_once(reader, scenes):
+    cfg = SlamConfig(pipelined=False)
+    cfg.loops.enabled = False
+    pipeline = SlamPipeline(reader, cfg, progress=False)
+    with pytest.raises(DataError, match="scenes must be a scene name or a list of them, got int"):
+        pipeline.run(3)
+    first, second = scenes
+    res = pipeline.run(first)  # a str is one scene, not its characters
+    assert [s.name for s in res.sessions] == [first]
+    key_frames = pipeline.timings.key_frames
+    for again in ([first], [second], first):
+        with pytest.raises(DataError, match=r"SlamPipeline\.run\(\) may be called once"):
+            pipeline.run(again)
+    assert list(pipeline.sessions) == [first] and pipeline.timings.key_frames == key_frames
+
+
+def test_recognizer_of_another_reference_radar_fails_up_front(reader):
+    cfg = SlamConfig()
+    cfg.key_frames.ref_channel = "RADAR_BACK_LEFT"
+    with pytest.raises(
+        ConfigError,
+        match=r"key_frames\.ref_channel=RADAR_BACK_LEFT but the place recognizer centres its "
+        r"images on RADAR_FRONT",
+    ):
+        SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+
+
 def test_unplaced_sessions_chain_into_the_map_as_a_group(sim_dataroot):
     # Three consecutive scenes. Session 2 only ever matches session 3 (never the map); session 3
     # later matches session 1. Session 2 must still end up in the map, on its ground truth.
@@ -503,8 +530,14 @@ def test_reversed_search_queries_turned_images_of_sessions_outside_the_map(
 def test_reversed_search_can_be_switched_off(reader, scenes, recognizer):
     cfg = SlamConfig()
     cfg.loops.reversed_search = False
-    res = SlamPipeline(reader, cfg, recognizer=recognizer(), progress=False).run(scenes)
+    rec = recognizer()
+    encoded = []
+    encode = rec._encode
+    rec._encode = lambda images: encoded.append(len(images)) or encode(images)
+    res = SlamPipeline(reader, cfg, recognizer=rec, progress=False).run(scenes)
     assert not [lp for lp in res.loops if lp.source == "reversed"]
+    # each key frame's image goes through the CNN once: its later sequences hit the cache
+    assert sum(encoded) == res.timings.key_frames
 
 
 def test_turned_cloud_is_the_same_world_seen_half_a_turn_round():
