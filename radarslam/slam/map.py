@@ -66,6 +66,8 @@ class StaticMapBuilder:
             if arr.ndim != 2 or arr.shape[1] not in (2, 3):
                 raise DataError(f"static map: points must be (N, 2) or (N, 3), got {arr.shape}")
             xyz = arr if arr.shape[1] == 3 else np.column_stack([arr, np.zeros(len(arr))])
+        if not len(xyz):  # a key frame while every radar was silent
+            return
         keep = np.all(np.isfinite(xyz), axis=1)
         if velocity_comp_mps is not None:
             v = np.asarray(velocity_comp_mps, dtype=np.float64).reshape(len(xyz), -1)

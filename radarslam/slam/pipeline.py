@@ -50,6 +50,7 @@ ICP inherits the placement's error along a street, where the geometry barely con
 from __future__ import annotations
 
 import bisect
+import logging
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -63,6 +64,8 @@ from radarslam.geometry import invert, se2_to_matrix, wrap_angle
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.records import LoopCandidate, NodeKey
 from radarslam.types import AccumulatedCloud, SceneInfo
+
+log = logging.getLogger("radarslam.slam")
 
 #: Odometry covariance (x, y, yaw) used where the odometry chain broke (a long gap in the data).
 _BROKEN_CHAIN_SIGMAS = np.array([10.0, 10.0, 0.5])
@@ -384,8 +387,21 @@ class SlamPipeline:
         finally:
             if bar is not None:
                 bar.close()
-        if not any(s.key_frames for s in self.sessions.values()):
-            raise DataError(f"no key frame with radar data in scene(s) {', '.join(names)}")
+        # Key frames are the reference radar's key-frame sweeps: a scene without one has none.
+        empty = [n for n in names if n not in self.sessions or not self.sessions[n].key_frames]
+        ref = self.config.key_frames.ref_channel
+        if len(empty) == len(names):
+            raise DataError(
+                f"no key frame in scene(s) {', '.join(names)}: the reference radar {ref} "
+                "(key_frames.ref_channel) has no key-frame sweep there"
+            )
+        for name in empty:
+            log.warning(
+                "%s: no key frame (the reference radar %s, key_frames.ref_channel, has no "
+                "key-frame sweep there); the scene is left out of the results",
+                name,
+                ref,
+            )
         for vote in self._votes:  # never confirmed by a consistent second loop
             if vote.weak:  # rejected by verification all along
                 self.loops.append(vote.record)

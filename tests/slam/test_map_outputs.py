@@ -138,3 +138,9 @@ def test_write_errors_name_the_results_folder_not_the_temporary_one(tmp_path, mo
         str(err.value) == f"{out / 'poses_scene-0001.tum'}: cannot write (No space left on device)"
     )
     assert list(tmp_path.iterdir()) == []
+
+
+def test_static_map_takes_an_empty_key_frame_cloud():
+    builder = StaticMapBuilder()
+    builder.add(np.eye(4), np.zeros(0, dtype=ACCUMULATED_DTYPE))  # every radar silent
+    assert len(builder.build().xyz) == 0

@@ -562,3 +562,46 @@ def test_turned_cloud_is_the_same_world_seen_half_a_turn_round():
 
     assert np.allclose(world(out), world(cloud))
     assert turned_cloud(AccumulatedCloud(pts, pose, "RADAR_FRONT", 123)).sample_token == ""
+
+
+def test_a_scene_without_reference_radar_key_frames_is_left_out_with_a_warning(
+    sim_dataroot, caplog
+):
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    # RADAR_FRONT (the key frames' reference) silent through the first scene only
+    root = sim_dataroot(
+        [
+            "scenario.missing_radar=[{channel: RADAR_FRONT, start_s: 0.0, end_s: 13.0}]",
+            "schedule.scene_gap_s=[5.0, 6.0]",
+        ]
+    )
+    reader = NuScenesRadar(root, "v1.0-mini")
+    first, second = [s.name for s in reader.scenes()]
+    cfg = SlamConfig()
+    cfg.loops.enabled = False
+    with caplog.at_level("WARNING", logger="radarslam.slam"):
+        res = SlamPipeline(reader, cfg, progress=False).run([first, second])
+    assert [s.name for s in res.sessions] == [second]
+    assert f"{first}: no key frame (the reference radar RADAR_FRONT" in caplog.text
+    with pytest.raises(DataError, match=r"no key frame in scene\(s\) scene-0001: the reference"):
+        SlamPipeline(reader, cfg, progress=False).run([first])
+
+
+def test_key_frames_while_every_radar_is_silent_still_give_a_map(sim_dataroot):
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    root = sim_dataroot(
+        [
+            "schedule.scenes_per_log=1",
+            "schedule.scene_duration_s=12.0",
+            "scenario.empty_windows=[{start_s: 3.0, end_s: 7.0}]",
+        ]
+    )
+    reader = NuScenesRadar(root, "v1.0-mini")
+    cfg = SlamConfig()
+    cfg.loops.enabled = False
+    res = SlamPipeline(reader, cfg, progress=False).run(reader.scenes()[0].name)
+    (session,) = res.sessions
+    assert np.all(np.isfinite(session.slam_poses))
+    assert len(res.static_map.xyz) > 0
