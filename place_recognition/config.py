@@ -12,7 +12,7 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 
 from radarslam.config import StrictModel, load_config
-from radarslam.types import RADAR_CHANNELS
+from radarslam.types import RADAR_CHANNELS, check_radar_channel
 
 #: The three radars the reference code filters with DPR (the two side-front radars are never
 #: filtered there). Offered as an option; the default filters all five.
@@ -47,12 +47,7 @@ class AccumulationConfig(StrictModel):
 
     _v_channels = field_validator("channels")(_check_channels)
 
-    @field_validator("ref_channel")
-    @classmethod
-    def _ref(cls, v: str) -> str:
-        if v not in RADAR_CHANNELS:
-            raise ValueError(f"unknown reference channel {v!r}")
-        return v
+    _v_ref = field_validator("ref_channel")(check_radar_channel)
 
 
 class DPRConfig(StrictModel):

@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from radarslam.errors import ConfigError
+from radarslam.io.text import read_text
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -104,14 +105,7 @@ def apply_overrides(data: dict, overrides: list[str] | None) -> dict:
 
 def read_yaml(path: str | Path) -> dict:
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file does not exist")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not a UTF-8 text file") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    text = read_text(path, "config file", ConfigError)
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:

@@ -23,6 +23,14 @@ RADAR_CHANNELS: tuple[str, ...] = (
     "RADAR_BACK_RIGHT",
 )
 
+
+def check_radar_channel(name: str) -> str:
+    """``name`` when it is one of :data:`RADAR_CHANNELS`, else ValueError (a config validator)."""
+    if name not in RADAR_CHANNELS:
+        raise ValueError(f"unknown radar channel {name!r} (one of {', '.join(RADAR_CHANNELS)})")
+    return name
+
+
 RADAR_FIELDS: tuple[str, ...] = (
     "x", "y", "z", "dyn_prop", "id", "rcs", "vx", "vy", "vx_comp", "vy_comp", "is_quality_valid",
     "ambig_state", "x_rms", "y_rms", "invalid_state", "pdh0", "vx_rms", "vy_rms",

@@ -22,6 +22,7 @@ from radarslam.errors import DataError
 from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth, evaluate_loops
 from radarslam.eval.metrics import align_se2, ate, drift, path_lengths_m, rpe, to_xy_yaw
 from radarslam.io.atomic import write_json_atomic
+from radarslam.io.text import read_text
 from radarslam.io.trajectory import read_tum
 from radarslam.slam.outputs import check_session_name
 from radarslam.slam.records import read_loops_csv_numbered
@@ -167,13 +168,9 @@ def read_results(results_dir: str | Path) -> ResultsFolder:
 
 def _read_run_json(run: Path) -> dict:
     try:
-        meta = json.loads(run.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise DataError(f"{run}: not a UTF-8 text file") from None
+        meta = json.loads(read_text(run, "run.json"))
     except json.JSONDecodeError as exc:
         raise DataError(f"{run}:{exc.lineno}: invalid JSON ({exc.msg})") from None
-    except OSError as exc:
-        raise DataError(f"{run}: cannot read ({exc.strerror})") from None
     if not isinstance(meta, dict):
         raise DataError(f"{run}: not a JSON object with a 'sessions' list")
     return meta

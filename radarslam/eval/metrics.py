@@ -21,6 +21,7 @@ import numpy as np
 
 from radarslam.errors import DataError
 from radarslam.geometry import rigid_problems
+from radarslam.timestamps import check_timestamps_us
 
 #: Rotation-block tolerance of (N, 4, 4) inputs: the trajectory files' (what read_kitti accepts).
 POSE_TOLERANCE = 1e-3
@@ -278,7 +279,7 @@ def pairs_for_delta(
     elif unit == "s":
         if timestamps_us is None:
             raise DataError("RPE: delta in seconds needs timestamps_us")
-        t = _timestamps_us(timestamps_us, n)
+        t = check_timestamps_us(timestamps_us, n, "RPE", strictly_increasing=False)
         if delta * 1e6 >= 2.0**62:
             ends = np.full(n, n)  # longer than any trajectory: no pair
         else:
@@ -291,48 +292,6 @@ def pairs_for_delta(
         raise DataError(f"RPE: unknown delta unit {unit!r} (expected s, m or frames)")
     keep = (ends < n) & (ends > starts)
     return np.column_stack([starts[keep], ends[keep]])
-
-
-def _timestamps_us(timestamps_us, n: int) -> np.ndarray:
-    """(n,) int64 sorted integer microseconds; integral floats accepted, anything else (seconds,
-    NaN, strings, bools) a :class:`DataError` naming the value."""
-    ts = np.asarray(timestamps_us)
-    if ts.shape != (n,):
-        raise DataError(f"RPE: {ts.shape} timestamps for {n} poses")
-    if ts.dtype == bool or not (
-        np.issubdtype(ts.dtype, np.integer) or np.issubdtype(ts.dtype, np.floating)
-    ):
-        raise DataError(
-            f"RPE: timestamps_us must be integer microseconds, got {ts.dtype} values"
-            + (f" such as {ts.flat[0].item()!r}" if ts.size else "")
-        )
-    if np.issubdtype(ts.dtype, np.floating):
-        with np.errstate(invalid="ignore"):
-            bad = ~np.isfinite(ts)
-            frac = ~bad & (ts != np.round(ts))
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise DataError(
-                f"RPE: timestamp {i} is {ts[i].item()!r}; timestamps_us must be finite integer "
-                "microseconds"
-            )
-        if frac.any():
-            i = int(np.argmax(frac))
-            raise DataError(
-                f"RPE: timestamp {i} is {ts[i].item()!r}, which has a fractional part; "
-                "timestamps_us must be integer microseconds (seconds given? multiply by 1e6)"
-            )
-    if n and (ts.max() >= 2**62 or ts.min() <= -(2**62)):  # t + delta must not wrap in int64
-        i = int(np.argmax(np.abs(ts.astype(np.float64))))
-        raise DataError(f"RPE: timestamp {i} ({ts[i].item()!r} us) is out of range (|t| < 2^62)")
-    t = ts.astype(np.int64)
-    if np.any(np.diff(t) < 0):
-        i = int(np.argmax(np.diff(t) < 0)) + 1
-        raise DataError(
-            f"RPE: timestamps_us are not sorted (timestamp {i}, {int(t[i])} us, is earlier "
-            "than the one before)"
-        )
-    return t
 
 
 @dataclass(frozen=True)

@@ -1,1 +1,1 @@
-"""File output helpers: atomic writes, trajectory formats."""
+"""File helpers: atomic writes, trajectory formats, reading text files."""

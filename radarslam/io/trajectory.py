@@ -21,6 +21,8 @@ import numpy as np
 from radarslam.errors import DataError
 from radarslam.geometry import make_transform, rigid_problem, rigid_problems, rotation_to_quat
 from radarslam.io.atomic import atomic_open
+from radarslam.io.text import read_text
+from radarslam.timestamps import check_timestamps_us
 
 #: Tolerance of the rotation check (|R R^T - I|, |det R - 1|, bottom row), the same when writing
 #: and reading: what the writers accept, the readers read back. Loose enough for poses printed
@@ -42,42 +44,6 @@ def _check_poses(poses, what: str) -> np.ndarray:
     if bad is not None:
         raise DataError(f"{what}: pose {bad[0]} {bad[1]}")
     return arr
-
-
-def _check_timestamps(timestamps_us, n: int, what: str) -> np.ndarray:
-    """(n,) int64 strictly increasing integer microseconds (integral floats accepted), else
-    :class:`DataError` naming ``what`` and the first offending value."""
-    ts = np.asarray(timestamps_us)
-    if ts.ndim != 1 or len(ts) != n:
-        raise DataError(f"{what}: {ts.shape} timestamps for {n} poses (need one per pose)")
-    if ts.dtype == bool or not (
-        np.issubdtype(ts.dtype, np.integer) or np.issubdtype(ts.dtype, np.floating)
-    ):
-        raise DataError(
-            f"{what}: timestamps_us must be integer microseconds, got {ts.dtype} values"
-            + (f" such as {ts.flat[0].item()!r}" if ts.size else "")
-        )
-    if ts.size and np.issubdtype(ts.dtype, np.floating):
-        with np.errstate(invalid="ignore"):
-            bad = ~np.isfinite(ts) | (ts != np.round(ts)) | (ts < -(2.0**63)) | (ts >= 2.0**63)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise DataError(
-                f"{what}: timestamp {i} is {ts[i].item()!r}; timestamps_us must be finite integer "
-                "microseconds (seconds given? multiply by 1e6)"
-            )
-    if ts.dtype == np.uint64 and ts.size and ts.max() > _INT64_MAX:
-        raise DataError(f"{what}: timestamp {int(ts.max())} us is out of the int64 range")
-    out = ts.astype(np.int64)
-    steps = np.diff(out)
-    if (steps <= 0).any():
-        i = int(np.argmax(steps <= 0)) + 1
-        how = "repeats" if steps[i - 1] == 0 else "is earlier than"
-        raise DataError(
-            f"{what}: timestamp {i} ({int(out[i])} us) {how} the previous one; timestamps must "
-            "be strictly increasing"
-        )
-    return out
 
 
 def _fmt(x: float) -> str:
@@ -112,7 +78,7 @@ def write_tum(path: str | Path, timestamps_us, poses) -> None:
     What :func:`read_tum` would reject is a :class:`DataError` here, before anything is written:
     poses must be rigid (:data:`POSE_TOLERANCE`), timestamps strictly increasing integers."""
     arr = _check_poses(poses, str(path))
-    ts = _check_timestamps(timestamps_us, len(arr), str(path))
+    ts = check_timestamps_us(timestamps_us, len(arr), str(path))
     lines = []
     for t, pose in zip(ts, arr, strict=True):
         w, x, y, z = rotation_to_quat(pose[:3, :3])
@@ -125,14 +91,7 @@ def write_tum(path: str | Path, timestamps_us, poses) -> None:
 
 
 def _data_lines(path: Path):
-    if not path.is_file():
-        raise DataError(f"{path}: trajectory file does not exist")
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: not a text trajectory file") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read the trajectory file ({exc.strerror})") from None
+    text = read_text(path, "trajectory file")
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from radarslam.errors import DataError
+from radarslam.io.text import read_text
 from radarslam.sim.traffic import EgoMotion, random_walk
 from radarslam.sim.world import StreetNetwork
 
@@ -39,14 +40,7 @@ def extend_route(net: StreetNetwork, rng: np.random.Generator, seq: list[int], l
 def read_tum(path: str | Path) -> np.ndarray:
     """(N, 8) rows timestamp_s x y z qx qy qz qw, sorted by time, timestamps strictly increasing."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: TUM trajectory file does not exist")
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: not a text TUM trajectory file (not UTF-8)") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read the TUM trajectory ({exc.strerror})") from None
+    text = read_text(path, "TUM trajectory file")
     rows = []
     lines = []
     for no, line in enumerate(text.splitlines(), 1):

@@ -9,7 +9,7 @@ from pydantic import Field, field_validator
 from radarslam.config import StrictModel
 from radarslam.odometry.config import OdometryConfig
 from radarslam.slam.backend_config import BackendConfig
-from radarslam.types import RADAR_CHANNELS
+from radarslam.types import check_radar_channel
 
 
 class KeyFrameConfig(StrictModel):
@@ -25,12 +25,7 @@ class KeyFrameConfig(StrictModel):
     #: (Algorithm 1 of the paper, as the place-recognition training data was made).
     dynamic_points: Literal["odometry", "dpr"] = "odometry"
 
-    @field_validator("ref_channel")
-    @classmethod
-    def _ref(cls, v: str) -> str:
-        if v not in RADAR_CHANNELS:
-            raise ValueError(f"unknown radar channel {v!r} (one of {', '.join(RADAR_CHANNELS)})")
-        return v
+    _v_ref = field_validator("ref_channel")(check_radar_channel)
 
 
 class LoopDetectionConfig(StrictModel):

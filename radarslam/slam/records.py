@@ -15,6 +15,7 @@ import numpy as np
 from radarslam.errors import DataError
 from radarslam.geometry import matrix_to_se2, se2_to_matrix
 from radarslam.io.atomic import write_text_atomic
+from radarslam.io.text import read_text
 
 
 @dataclass(frozen=True, order=True)
@@ -159,14 +160,7 @@ def read_loops_csv(path: str | Path) -> list[LoopCandidate]:
 def read_loops_csv_numbered(path: str | Path) -> list[tuple[int, LoopCandidate]]:
     """The loops of ``path`` with the line number each was read from (for error messages)."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: loops file does not exist")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: not a UTF-8 text file") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror})") from None
+    text = read_text(path, "loops file")
     try:
         return _parse_loops_csv(path, text)
     except csv.Error as exc:

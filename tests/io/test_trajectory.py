@@ -110,7 +110,7 @@ def test_write_rejects_bad_input(tmp_path):
 def test_binary_tum_is_a_data_error(tmp_path):
     path = tmp_path / "bin.tum"
     path.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe" * 10)
-    with pytest.raises(DataError, match=r"bin\.tum: not a text trajectory file"):
+    with pytest.raises(DataError, match=r"bin\.tum: not a UTF-8 text file \(a trajectory file"):
         read_tum(path)
 
 

@@ -200,7 +200,7 @@ def test_bad_inputs_are_one_line_errors(tmp_path):
 def test_bad_tum_files_name_the_file(tmp_path):
     binary = tmp_path / "drive.tum"
     binary.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe\x00" * 20)
-    with pytest.raises(DataError, match=r"drive\.tum: not a text TUM trajectory file"):
+    with pytest.raises(DataError, match=r"drive\.tum: not a UTF-8 text file \(a TUM"):
         read_tum(binary)
     dup = tmp_path / "dup.tum"
     dup.write_text("".join(f"{t} {t} 0 0 0 0 0 1\n" for t in (0.0, 0.1, 0.1, 0.2, 0.3)))
