@@ -416,12 +416,16 @@ class NuScenesRadar:
         filters: RadarPointFilter | None = None,
     ) -> Iterator[RadarSweep]:
         """The sweeps of one radar in a scene, following the sample_data prev/next chain (time
-        order). Points are in the sensor frame, after the reader's filters (or ``filters``)."""
+        order). Points are in the sensor frame, after the reader's filters (or ``filters``).
+        The arguments are checked at the call, not at the first sweep."""
         _check_filters(filters)
         info = self.scene(scene)
         rows = self._rows(info, channel)
         if key_frames_only:
             rows = rows[self.tables.radar.is_key_frame[rows]]
+        return self._sweeps(info, rows, filters)
+
+    def _sweeps(self, info: SceneInfo, rows: np.ndarray, filters) -> Iterator[RadarSweep]:
         before = dict(self.skip_counts.per_scene.get(info.name, {})) or None
         for r in rows:
             yield self._sweep(int(r), filters, info.name)

@@ -397,7 +397,7 @@ def test_bad_filters_are_a_config_error(mini, reader):
     with pytest.raises(ConfigError, match=match):
         reader.iter_frames("scene-0001", filters="none")
     with pytest.raises(ConfigError, match=match):
-        list(reader.iter_sweeps("scene-0001", "RADAR_FRONT", filters="none"))
+        reader.iter_sweeps("scene-0001", "RADAR_FRONT", filters="none")  # at the call
     sample = mini.samples["scene-0003"][2]
     with pytest.raises(ConfigError, match=match):
         reader.accumulate(sample, filters="none")

@@ -605,3 +605,10 @@ def test_key_frames_while_every_radar_is_silent_still_give_a_map(sim_dataroot):
     (session,) = res.sessions
     assert np.all(np.isfinite(session.slam_poses))
     assert len(res.static_map.xyz) > 0
+
+
+def test_a_recognizer_that_already_holds_places_is_refused(reader, recognizer):
+    rec = recognizer()
+    rec.add_descriptor(np.ones(rec.output_dim, np.float32) / rec.output_dim**0.5, [], "elsewhere")
+    with pytest.raises(ConfigError, match=r"holds 1 places; it must be empty"):
+        SlamPipeline(reader, SlamConfig(), recognizer=rec, progress=False)
