@@ -8,17 +8,15 @@ dead reckoning) as the in-process peer.
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 from rich.console import Console
 from rich.table import Table
-from tqdm import tqdm
 
 from radarslam.eval.metrics import ate
 from radarslam.slam.pose_graph import PoseGraph, PoseGraphConfig
 from radarslam.slam.records import NodeKey
-from radarslam.slam.synthetic_graph import multilap_circuit
+from radarslam.slam.synthetic_graph import grow_isam2
 
 
 def main() -> None:
@@ -31,34 +29,18 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    laps = int(np.ceil(args.nodes / args.poses_per_lap))
-    sg = multilap_circuit(
-        num_laps=laps,
-        poses_per_lap=args.poses_per_lap,
-        radius_m=80.0,
-        loop_every=args.loop_every,
-        false_loop_fraction=args.false_loops,
-        seed=args.seed,
+    grown = grow_isam2(
+        args.nodes,
+        args.poses_per_lap,
+        args.loop_every,
+        args.robust,
+        args.false_loops,
+        args.seed,
+        progress=True,
     )
-    n = min(args.nodes, len(sg.gt))
-    loops_at: dict[int, list] = {}
-    for lp in sg.loops:
-        if lp.j < n:
-            loops_at.setdefault(lp.j, []).append(lp)
-    num_loops = sum(len(v) for v in loops_at.values())
-
-    pg = PoseGraph(PoseGraphConfig(loop_robust=args.robust))
-    pg.add_session("s", sg.gt[0], anchor="prior")
-    pg.update()
-    step_ms, loop_step = [], []
-    t_total = time.perf_counter()
-    for k in tqdm(range(n - 1), desc="iSAM2", unit="kf", mininterval=1.0):
-        pg.add_odometry("s", k, k + 1, sg.odometry[k], sg.odometry_covariance)
-        for lp in loops_at.get(k + 1, []):
-            pg.add_loop(NodeKey("s", lp.i), NodeKey("s", lp.j), lp.i_from_j, sg.loop_information)
-        step_ms.append(pg.update() * 1e3)
-        loop_step.append(k + 1 in loops_at)
-    isam_total_s = time.perf_counter() - t_total
+    pg, sg, n, loops_at = grown.graph, grown.synthetic, grown.num_nodes, grown.loops_at
+    num_loops, isam_total_s = grown.num_loops, grown.total_s
+    step_ms, loop_step = grown.update_ms, grown.with_loop
     gt = sg.gt[:n]
     ate_isam = ate(pg.session_poses("s"), gt, align="none").rmse_m
     pg.optimize_batch()

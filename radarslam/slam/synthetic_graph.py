@@ -1,5 +1,6 @@
 """Seeded synthetic pose-graph problems (multi-lap circuits with noisy odometry, true and false
-loop closures) for the back-end tests and ``bench/backend.py``. Pure numpy."""
+loop closures) for the back-end tests and ``bench/backend.py``, ``bench/slam.py``. Pure numpy,
+except :func:`grow_isam2`, which drives the GTSAM back end."""
 
 from __future__ import annotations
 
@@ -129,3 +130,73 @@ def observe_place(
     pts = np.concatenate([pts, clutter])
     view = np.asarray(view_from_place, dtype=np.float64)
     return pts @ view[:2, :2].T + view[:2, 3]
+
+
+@dataclass
+class Isam2Growth:
+    """iSAM2 fed one key frame at a time over a synthetic multi-lap graph (:func:`grow_isam2`)."""
+
+    graph: object  # the PoseGraph, holding the grown estimate
+    synthetic: SyntheticGraph
+    num_nodes: int
+    loops_at: dict[int, list[SyntheticLoop]]  # later node -> the loops closed there
+    update_ms: np.ndarray  # (num_nodes - 1,) iSAM2 update time per added key frame
+    with_loop: np.ndarray  # (num_nodes - 1,) bool: that key frame closed a loop
+    total_s: float
+
+    @property
+    def num_loops(self) -> int:
+        return sum(len(v) for v in self.loops_at.values())
+
+
+def grow_isam2(
+    num_nodes: int = 10_000,
+    poses_per_lap: int = 500,
+    loop_every: int = 25,
+    robust: str = "cauchy",
+    false_loop_fraction: float = 0.0,
+    seed: int = 0,
+    progress: bool = False,
+) -> Isam2Growth:
+    """The back end's per-key-frame cost as a graph grows to ``num_nodes``: each step adds one
+    odometry factor and the loops closing at that node, then runs one iSAM2 update (what the SLAM
+    pipeline does per key frame, on a graph of any size)."""
+    import time
+
+    from radarslam.slam.pose_graph import PoseGraph, PoseGraphConfig
+    from radarslam.slam.records import NodeKey
+
+    laps = int(np.ceil(num_nodes / poses_per_lap))
+    sg = multilap_circuit(
+        num_laps=laps,
+        poses_per_lap=poses_per_lap,
+        radius_m=80.0,
+        loop_every=loop_every,
+        false_loop_fraction=false_loop_fraction,
+        seed=seed,
+    )
+    n = min(num_nodes, len(sg.gt))
+    loops_at: dict[int, list[SyntheticLoop]] = {}
+    for lp in sg.loops:
+        if lp.j < n:
+            loops_at.setdefault(lp.j, []).append(lp)
+    pg = PoseGraph(PoseGraphConfig(loop_robust=robust))
+    pg.add_session("s", sg.gt[0], anchor="prior")
+    pg.update()
+    steps = range(n - 1)
+    if progress:
+        from tqdm import tqdm
+
+        steps = tqdm(steps, desc="iSAM2", unit="kf", mininterval=1.0)
+    update_ms, with_loop = [], []
+    t0 = time.perf_counter()
+    for k in steps:
+        pg.add_odometry("s", k, k + 1, sg.odometry[k], sg.odometry_covariance)
+        for lp in loops_at.get(k + 1, []):
+            pg.add_loop(NodeKey("s", lp.i), NodeKey("s", lp.j), lp.i_from_j, sg.loop_information)
+        update_ms.append(pg.update() * 1e3)
+        with_loop.append(k + 1 in loops_at)
+    return Isam2Growth(
+        pg, sg, n, loops_at, np.asarray(update_ms), np.asarray(with_loop, dtype=bool),
+        time.perf_counter() - t0,
+    )  # fmt: skip

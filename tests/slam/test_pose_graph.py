@@ -173,3 +173,22 @@ def test_unlinked_session_beside_millimetre_odometry_is_solvable():
     est = graph.optimize_batch()
     assert np.allclose(est[NodeKey("b", 0)], se2_to_matrix(5.0, 0.0, 0.0), atol=1e-6)
     assert len(graph.components()) == 2
+
+
+def test_grow_isam2_times_every_key_frame_and_tracks_the_batch_solution():
+    from radarslam.slam.synthetic_graph import grow_isam2
+
+    grown = grow_isam2(300, poses_per_lap=100, loop_every=25)
+    assert grown.num_nodes == 300 and len(grown.update_ms) == len(grown.with_loop) == 299
+    assert np.all(grown.update_ms > 0)
+    assert grown.with_loop.sum() == len(grown.loops_at) > 0
+    assert grown.num_loops == sum(lp.j < 300 for lp in grown.synthetic.loops)
+    gt = grown.synthetic.gt[:300]
+    est = ate(grown.graph.session_poses("s"), gt, align="none").rmse_m
+    drift = ate(grown.synthetic.dead_reckoning[:300], gt, align="none").rmse_m
+    grown.graph.optimize_batch()
+    batch = ate(grown.graph.session_poses("s"), gt, align="none").rmse_m
+    # pinned (seed 0): 3.95 m online, 3.74 m batch, 7.44 m dead reckoning (the first lap, before
+    # any loop, keeps its drift)
+    assert est < 0.6 * drift
+    assert abs(est - batch) < 0.1 * batch
