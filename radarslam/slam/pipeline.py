@@ -340,10 +340,11 @@ class SlamPipeline:
         if self.recognizer is not None:
             self._check_recognizer_reference(loaded=recognizer is None)
             # its places become loop candidates, and a candidate must be a key frame of this run
-            if len(self.recognizer):
+            held = len(self.recognizer) if hasattr(self.recognizer, "__len__") else 0
+            if held:
                 raise ConfigError(
-                    f"the place recognizer given to SlamPipeline holds {len(self.recognizer)} "
-                    "places; it must be empty (the pipeline adds every key frame itself)"
+                    f"the place recognizer given to SlamPipeline holds {held} places; it must be "
+                    "empty (the pipeline adds every key frame itself)"
                 )
         #: run() is single-use: a second call would mix its sessions into this one's state
         self._ran = False
