@@ -151,7 +151,6 @@ def _sym(m: np.ndarray) -> np.ndarray:
     return 0.5 * (m + m.T)
 
 
-_F64 = np.dtype(np.float64)
 #: Distinct checked calibrations remembered per odometry object (5 radars; a dataset has a few).
 _MAX_CALIBRATIONS = 1024
 
@@ -175,8 +174,7 @@ class RadarOdometry:
         self._growth = np.diag(self.config.fusion.invalid_doppler_growth)
         #: Bytes of the ego_from_sensor matrices already checked rigid: the calibration
         #: of a radar repeats in every sweep, so each is checked once, not 5 times a frame.
-        self._good_calibrations: set[bytes | tuple[str, bytes]] = set()
-        self._checked_frame: RadarFrame | None = None  # checked by process(): skip in ego_points
+        self._good_calibrations: set[tuple[str, bytes]] = set()
         self.reset()
 
     def reset(self) -> None:
@@ -236,31 +234,17 @@ class RadarOdometry:
         why = rigid_problem(gt)
         if why is not None:
             raise DataError(f"{_where(frame)}: world_from_ego {why}")
-        if type(gt) is not np.ndarray or gt.dtype is not _F64:
-            gt = np.asarray(gt, dtype=np.float64)
-        good = self._good_calibrations
+        gt = np.asarray(gt, dtype=np.float64)  # no copy for float64
         for ch, sweep in frame.sweeps.items():
-            cal = sweep.ego_from_sensor
-            # the usual case inlined (~0.5 us a sweep): a float64 calibration already checked
-            if not (
-                type(sweep.timestamp_us) is int
-                and type(cal) is np.ndarray
-                and cal.dtype is _F64
-                and cal.shape == (4, 4)
-                and cal.tobytes() in good
-            ):
-                self._check_sweep(frame, ch, sweep)
+            self._check_sweep(frame, ch, sweep)
         return gt
 
     def _check_sweep(self, frame: RadarFrame, ch: str, sweep) -> None:
         """One sweep's timestamp and calibration (a set lookup once its calibration was seen)."""
         cal = sweep.ego_from_sensor
-        if type(cal) is np.ndarray and cal.shape == (4, 4):
-            key = cal.tobytes() if cal.dtype is _F64 else (cal.dtype.str, cal.tobytes())
-            if key in self._good_calibrations and _is_int_us(sweep.timestamp_us):
-                return
-        else:
-            key = None
+        key = (cal.dtype.str, cal.tobytes()) if isinstance(cal, np.ndarray) else None
+        if key in self._good_calibrations and _is_int_us(sweep.timestamp_us):
+            return
         if not _is_int_us(sweep.timestamp_us):
             raise DataError(
                 f"{_where(frame)}: {ch} sweep timestamp_us must be integer microseconds, got "
@@ -278,17 +262,15 @@ class RadarOdometry:
         """(M, 3) dynamic-free points of all radars in the ego frame at ``frame.timestamp_us``,
         de-skewed with ``twist`` and lifted to z = 0.
 
-        Each sweep's timestamp and ``ego_from_sensor`` are checked as in :meth:`check_frame`
-        (unless :meth:`process` just did), so a bad calibration cannot make non-finite points."""
+        Each sweep's timestamp and ``ego_from_sensor`` are checked as in :meth:`check_frame` (a
+        set lookup once a calibration was seen), so a bad one cannot make non-finite points."""
         pc = self.config.points
         chunks = []
-        checked = frame is self._checked_frame
         for ch, sweep in frame.sweeps.items():
             n = len(sweep)
             if n == 0:
                 continue
-            if not checked:
-                self._check_sweep(frame, ch, sweep)
+            self._check_sweep(frame, ch, sweep)
             xy = sweep.xy
             rng = np.hypot(xy[:, 0], xy[:, 1])
             keep = np.isfinite(rng) & (rng >= pc.min_range_m) & (rng <= pc.max_range_m)
@@ -314,7 +296,6 @@ class RadarOdometry:
         cfg = self.config
         # Before anything uses the frame: a NaN pose given to kiss-icp aborts the process.
         ground_truth = self.check_frame(frame)
-        self._checked_frame = frame
         fit = self.doppler.fit_frame(frame)
         t1 = time.perf_counter()
 
@@ -340,7 +321,6 @@ class RadarOdometry:
         if not np.all(np.isfinite(twist)) or not np.all(np.isfinite(twist_cov)):
             twist, twist_cov = self._twist.copy(), self._twist_cov + self._growth
         points = self.ego_points(frame, fit, twist)
-        self._checked_frame = None
         t2 = time.perf_counter()
 
         first = self._pose is None
