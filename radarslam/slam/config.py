@@ -82,13 +82,15 @@ class LoopDetectionConfig(StrictModel):
     #: and for 12 % with the image sequence turned by 180 deg about the radar (the far field,
     #: which only the forward radar reaches, stays on the wrong side). Every
     #: ``reversed_every``-th key frame of a session outside the map that closed nothing else
-    #: queries the map's key frames with its turned sequence; the best match goes to the
-    #: translation search over headings within ``reversed_heading_range_deg`` of a half turn
-    #: (one ICP refinement), then to the usual tests and session linking. Seed 33: recall 0.628
-    #: -> 0.797, 4 instead of 1 sessions in the map, all 814 loops correct; demo 0.84 -> 1.00;
-    #: the long-scene benchmark links nothing more. Every 6th key frame (then the backoff
-    #: below): every 8th left the demo's reversed drive unlinked, every 4th cost the benchmark
-    #: more time (docs/results.md).
+    #: queries other sessions' key frames with its turned sequence (``reversed_targets``); the
+    #: best match goes to the translation search over headings within
+    #: ``reversed_heading_range_deg`` of a half turn (one ICP refinement), then to the usual
+    #: tests and session linking. Seed 33: recall 0.628 -> 0.797, 4 instead of 1 sessions in the
+    #: map, all 814 loops correct; demo 0.84 -> 1.00. On the long-scene benchmark it linked
+    #: nothing more until the turned query searched sessions outside the map too and a lone
+    #: vote could be confirmed (``confirm_*``; docs/results.md). Every 6th key frame (then the
+    #: backoff below): every 8th left the demo's reversed drive unlinked, every 4th cost the
+    #: benchmark more time (docs/results.md).
     #: False: off.
     reversed_search: bool = True
     reversed_every: int = Field(6, ge=1)
@@ -98,6 +100,11 @@ class LoopDetectionConfig(StrictModel):
     #: turned image sequence and a registration (about 0.2 s here). None: a fixed interval.
     reversed_backoff_searches: int | None = Field(8, ge=1)
     reversed_heading_range_deg: float = Field(60.0, gt=0, le=360)
+    #: Which key frames the turned query may return: "other_groups", those of every session
+    #: not yet linked to the query's, or "map", only those of sessions already in the map.
+    #: A street is often driven the other way by a session that joins the map only later (on
+    #: the long-scene benchmark, scene-0003 against scene-0002): "map" never searched it there.
+    reversed_targets: Literal["map", "other_groups"] = "other_groups"
     #: Rotation-invariant candidates (ScanContext, radarslam.slam.scancontext_candidates) for
     #: key frames of sessions outside the map that AutoPlace did not close: they can find streets
     #: the map drove the other way round, which AutoPlace's heading-bound image does not.
@@ -136,6 +143,30 @@ class LoopDetectionConfig(StrictModel):
     weak_vote_max_inlier_rmse_m: float = Field(0.62, gt=0.0)
     weak_vote_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
     weak_link_min_votes: int = Field(4, ge=2)
+    #: Outside the map (sessions linked to each other but not to the map) no graph corrects
+    #: the placements, while both odometry chains drift from where the sessions were linked:
+    #: a verification's guess then chains from the query session's latest loop (with the
+    #: candidate's session if there is one) over a short span of odometry. On seed 21 the
+    #: placement's guess let proximity ICP follow the drift into 2.1-2.6 m errors (4 of 689
+    #: loops); chained: 703 of 703 correct, the largest error 0.65 m. False: the placement.
+    guess_from_last_loop: bool = True
+    #: Confirmation of a lone vote. A loop between two groups that links nothing yet predicts
+    #: where the query's session lies in the other group; up to ``confirm_max_checks`` earlier
+    #: key frames of that session, at least ``confirm_spacing_m`` from the vote's key frame and
+    #: from each other and predicted within ``proximity_radius_m`` of the other group's key
+    #: frames, are registered from that prediction (the proximity verifier, ICP only). When
+    #: ``confirm_min_loops`` of them are accepted near the prediction (``map_consistency_*``),
+    #: they join the vote and the groups link. Reversed drives rarely yield two independent
+    #: global matches, but once one is found the street's other key frames align from it.
+    #: ICP from a prediction stays where the prediction put it when the geometry allows it:
+    #: along a straight street a vote 7 m off was "confirmed" by key frames of the same street
+    #: (seed 7: constraint ratios 0.71 and 0.79, the vote's 0.46). So the vote and every
+    #: confirmation must be well conditioned (``confirm_min_constraint_ratio``, see
+    #: LoopVerifierConfig.min_constraint_ratio). 0 checks: off.
+    confirm_max_checks: int = Field(4, ge=0)
+    confirm_min_loops: int = Field(2, ge=1)
+    confirm_spacing_m: float = Field(10.0, gt=0.0)
+    confirm_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
 
 
 class SlamConfig(StrictModel):

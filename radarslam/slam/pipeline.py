@@ -18,7 +18,8 @@
       logged with the reason;
    e. **reversed search**, for a session outside the map when recognition closed nothing: every
       ``reversed_every``-th key frame (less often after repeated misses) queries AutoPlace with
-      its images turned by 180 deg against the map's key frames, and the best match is verified
+      its images turned by 180 deg against other sessions' key frames (``reversed_targets``:
+      those not linked to it yet, or only the map's), and the best match is verified
       over headings near a half turn: how a street driven the other way round is found;
    f. **proximity search** when nothing else closed the key frame: once the key frame's session is
       linked to others (or revisits its own past), the nearest key frame of its group within
@@ -37,14 +38,20 @@ between two groups are votes on their relative placement; once ``link_min_consis
 agree (each vote's placement puts the others' loop key frames within ``link_consistency_m``), the
 groups merge (the other votes are rejected as false loops). A global registration that failed the
 tight-fitness or RMSE test by a little, if well conditioned, is a weak vote: it counts only towards
-a link of ``weak_link_min_votes`` agreeing votes, one of them a full loop. The first session's
-group is the map: a group that merges into it enters the graph with its poses moved there (iSAM2
-never sees a chain initialised kilometres away), together with the loops found inside it. Groups
-that never reach the map are added at the end on their own weak anchor and reported as separate
-components, not forced into the map. When two groups merge, the key frames processed before the
-link (which had no prediction then) are caught up by the proximity search against the other side.
-The merged placement is the mean of the agreeing votes: each vote errs on its own, and proximity
-ICP inherits the placement's error along a street, where the geometry barely constrains it.
+a link of ``weak_link_min_votes`` agreeing votes, one of them a full loop. A lone vote is checked
+where it predicts the session lies: earlier (then later) key frames of its session, spaced apart,
+are registered from that prediction, and enough of them accepted near it link the groups
+(``loops.confirm_*``; a street driven the other way rarely gives two global matches). The first
+session's group is the map: a group that merges into it enters the graph with its poses moved
+there (iSAM2 never sees a chain initialised kilometres away), together with the loops found inside
+it. Groups that never reach the map are added at the end on their own weak anchor and reported as
+separate components, not forced into the map. When two groups merge, the key frames processed
+before the link (which had no prediction then) are caught up by the proximity search against the
+other side. The merged placement is the mean of the agreeing votes: each vote errs on its own,
+and proximity ICP inherits the placement's error along a street, where the geometry barely
+constrains it. For the same reason, inside a group outside the map (no graph corrects it there)
+a prediction chains from the session's latest loop rather than from the link's placement, which
+both sessions' odometry drifts away from (``loops.guess_from_last_loop``).
 """
 
 from __future__ import annotations
@@ -184,6 +191,17 @@ class _PendingLoop:
     information: np.ndarray
     #: failed verification by a little (``loops.weak_vote_*``): counts only towards a weak link
     weak: bool = False
+
+
+@dataclass
+class _Confirmation:
+    """A lone vote between two groups whose predicted placement is being checked at other key
+    frames of its query's session (``loops.confirm_*``)."""
+
+    vote: _PendingLoop
+    taken: list[np.ndarray]  # group-frame positions of the key frames used (the vote's first)
+    confirmed: list[_PendingLoop] = field(default_factory=list)
+    checks: int = 0
 
 
 @dataclass
@@ -352,6 +370,9 @@ class SlamPipeline:
         self.groups: dict[int, _Group] = {}
         #: Verified loops between two groups, waiting for a consistent partner to merge them.
         self._votes: list[_PendingLoop] = []
+        self._confirming: list[_Confirmation] = []
+        # (query session, candidate session or None: any) -> the latest loop inside one group
+        self._last_loop: dict[tuple[str, str | None], LoopCandidate] = {}
         self.loops: list[LoopCandidate] = []
         self.timings = SlamTimings()
         self._kf_by_key: dict[NodeKey, KeyFrame] = {}
@@ -409,6 +430,8 @@ class SlamPipeline:
                 name,
                 ref,
             )
+        for hyp in list(self._confirming):  # the last session ended before enough checks
+            self._settle(hyp)
         for vote in self._votes:  # never confirmed by a consistent second loop
             if vote.weak:  # rejected by verification all along
                 self.loops.append(vote.record)
@@ -556,6 +579,8 @@ class SlamPipeline:
     # --- the key-frame side -----------------------------------------------------------------------
 
     def _start_session(self, name: str) -> None:
+        for hyp in list(self._confirming):  # the earlier sessions get no more key frames
+            self._settle(hyp)
         session = _Session(name, len(self.sessions))
         self.sessions[name] = session
         group = _Group(session.index, {name: np.eye(4)})  # unique: merges delete groups
@@ -600,6 +625,8 @@ class SlamPipeline:
 
         if self.recognizer is not None:
             self._detect_loops(session, kf, cloud)
+            if self._confirming:
+                self._confirm_with(kf)
         t2 = time.perf_counter()
         if session.inserted:
             self.timings.isam2_update_ms.append(1e3 * self.graph.update())
@@ -652,7 +679,8 @@ class SlamPipeline:
     def _reversed_search(self, session: _Session, kf: KeyFrame, cloud) -> bool:
         """For a session outside the map: AutoPlace queried with the key frame's image sequence
         turned by 180 deg, i.e. as the street looks driven the other way round, against the
-        map's key frames; the best match is verified by the translation search over headings
+        key frames of ``loops.reversed_targets``; the best match is verified by the translation
+        search over headings
         near 180 deg (see ``loops.reversed_search``)."""
         cfg = self.config.loops
         interval = cfg.reversed_every
@@ -669,9 +697,17 @@ class SlamPipeline:
         t0 = time.perf_counter()
         sequence = self._sequence(session, cloud)
         desc, rcs = self.recognizer.describe([turned_cloud(c) for c in sequence])
-        candidates = self.recognizer.query_descriptor(
-            desc, rcs, k=1, exclude=lambda key: not self.sessions[key.session].inserted
-        )
+        if cfg.reversed_targets == "map":
+
+            def exclude(key: NodeKey) -> bool:
+                return not self.sessions[key.session].inserted
+        else:
+            group = session.group
+
+            def exclude(key: NodeKey) -> bool:
+                return self.sessions[key.session].group == group
+
+        candidates = self.recognizer.query_descriptor(desc, rcs, k=1, exclude=exclude)
         self.timings.place_recognition_s += time.perf_counter() - t0
         closed = False
         for cand in candidates:
@@ -731,25 +767,38 @@ class SlamPipeline:
         # Candidates and query are placed the same way (group link @ odometry) so that a common
         # error of the link cancels; the verification's guess then uses the graph's estimate.
         query_xy = (group.from_session[session.name] @ kf.odometry_pose)[:2, 3]
-        recent_us = cfg.exclude_recent_s * 1e6
+        found = self._near_key_frames(group, query_xy, among, recent_of=kf)
+        return [k for _, k in found[: cfg.proximity_candidates]]
+
+    def _near_key_frames(
+        self,
+        group: _Group,
+        xy: np.ndarray,
+        among: set[str] | None = None,
+        recent_of: KeyFrame | None = None,
+    ) -> list[tuple[float, KeyFrame]]:
+        """(distance, key frame) of the group's key frames within ``proximity_radius_m`` of
+        ``xy`` (group frame, key frames placed by link @ odometry), nearest first, at most one
+        per session (of the sessions ``among``, if given; ``recent_of``'s recent past left out)."""
+        cfg = self.config.loops
         found: list[tuple[float, KeyFrame]] = []
         for name, group_from_session in group.from_session.items():
             if among is not None and name not in among:
                 continue
             other = self.sessions[name]
-            xy = other.positions()
-            if other is session:
-                n_old = bisect.bisect_left(other.timestamps_us, kf.timestamp_us - recent_us)
-                xy = xy[:n_old]
-            if not len(xy):
+            pos = other.positions()
+            if recent_of is not None and name == recent_of.key.session:
+                recent_us = recent_of.timestamp_us - cfg.exclude_recent_s * 1e6
+                pos = pos[: bisect.bisect_left(other.timestamps_us, recent_us)]
+            if not len(pos):
                 continue
-            xy = xy @ group_from_session[:2, :2].T + group_from_session[:2, 3]
-            d = np.hypot(*(xy - query_xy).T)
+            pos = pos @ group_from_session[:2, :2].T + group_from_session[:2, 3]
+            d = np.hypot(*(pos - xy).T)
             i = int(np.argmin(d))
             if d[i] <= cfg.proximity_radius_m:
                 found.append((float(d[i]), other.key_frames[i]))
         found.sort(key=lambda t: t[0])
-        return [k for _, k in found[: cfg.proximity_candidates]]
+        return found
 
     def _describe(self, session: _Session, kf: KeyFrame, cloud) -> tuple[np.ndarray, np.ndarray]:
         """The key frame's AutoPlace descriptor over (t-2, t-1, t); the recognizer encodes each
@@ -805,9 +854,24 @@ class SlamPipeline:
         qs, cs = self.sessions[query.key.session], self.sessions[cand.key.session]
         if qs is cs:
             return invert(cand.odometry_pose) @ query.odometry_pose
-        if qs.group == cs.group:
-            return invert(self._pose_in_group(cand)) @ self._pose_in_group(query)
-        return None
+        if qs.group != cs.group:
+            return None
+        last = self._last_loop.get((qs.name, cs.name)) or self._last_loop.get((qs.name, None))
+        if not qs.inserted and last is not None and self.config.loops.guess_from_last_loop:
+            # Outside the map no graph corrects the placements, and both odometry chains drift
+            # from where the sessions were linked: chain from the query session's latest loop
+            # (with the candidate's session if there is one) over a short span of odometry.
+            lq, lc = self._kf_by_key[last.query], self._kf_by_key[last.candidate]
+            partner = self.groups[qs.group].from_session[last.candidate.session]
+            query_in_group = (
+                partner
+                @ lc.odometry_pose
+                @ last.candidate_from_query
+                @ invert(lq.odometry_pose)
+                @ query.odometry_pose
+            )
+            return invert(self._pose_in_group(cand)) @ query_in_group
+        return invert(self._pose_in_group(cand)) @ self._pose_in_group(query)
 
     def _verify(
         self,
@@ -862,11 +926,130 @@ class SlamPipeline:
                 self._add_loop(record, ver.information)
             else:
                 self.groups[session.group].loops.append(loop)
+            if cand_session is not session:
+                self._last_loop[(session.name, cand_session.name)] = record
+                self._last_loop[(session.name, None)] = record
         else:  # between two groups: a vote on where one lies in the other
             self._votes.append(loop)
             self._try_merge(session.group, cand_session.group)
+            if session.group != cand_session.group:
+                self._confirm_vote(session, loop)
         session.last_loop_kf = query.key.index
         return True
+
+    def _confirm_vote(self, session: _Session, vote: _PendingLoop) -> None:
+        """A vote between two groups that linked nothing: check the placement it predicts at
+        the session's earlier key frames now, and at its later ones as they come (see
+        ``loops.confirm_*``)."""
+        cfg = self.config.loops
+        if not cfg.confirm_max_checks or cfg.proximity_radius_m is None:
+            return
+        if not vote.record.constraint_ratio >= cfg.confirm_min_constraint_ratio:
+            return  # a slide along a straight street would be confirmed along it
+        query = self._kf_by_key[vote.record.query]
+        hyp = _Confirmation(vote, taken=[self._pose_in_group(query)[:2, 3]])
+        self._confirming.append(hyp)
+        # Nearest in time first: the overlap that produced the vote extends around it.
+        for kf in reversed(session.key_frames[: query.key.index]):
+            if self._check_confirmation(hyp, kf) is not None:
+                break
+
+    def _confirm_with(self, kf: KeyFrame) -> None:
+        """A new key frame checks the open confirmations of its session's lone votes."""
+        for hyp in list(self._confirming):
+            if hyp.vote.record.query.session == kf.key.session:
+                self._check_confirmation(hyp, kf)
+
+    def _check_confirmation(self, hyp: _Confirmation, kf: KeyFrame) -> bool | None:
+        """Register ``kf`` from the placement ``hyp``'s vote predicts, if it lies apart from
+        the key frames already used and near the other group; then settle ``hyp`` when it can
+        be: True (linked), False (given up), None (still open)."""
+        cfg = self.config.loops
+        rec = hyp.vote.record
+        a = self.sessions[rec.query.session].group
+        b = self.sessions[rec.candidate.session].group
+        if a == b:  # linked by other loops meanwhile; the catch-up searches these key frames
+            return self._settle(hyp)
+        pose_a = self._pose_in_group(kf)
+        if min(np.hypot(*(pose_a[:2, 3] - xy)) for xy in hyp.taken) < cfg.confirm_spacing_m:
+            return None
+        pose_b = self._b_from_a(hyp.vote, a) @ pose_a
+        found = self._near_key_frames(self.groups[b], pose_b[:2, 3])
+        if not found:
+            return None
+        other = found[0][1]
+        hyp.taken.append(pose_a[:2, 3])
+        guess = invert(self._pose_in_group(other)) @ pose_b
+        record, ver = self.proximity_verifier.verify_candidate(
+            kf.key,
+            other.key,
+            kf.timestamp_us,
+            other.timestamp_us,
+            float("nan"),
+            self._local_map(kf, past_only=True),
+            self._local_map(other, past_only=False),
+            guess,
+        )
+        record = replace(record, source="confirmation")
+        dist_m, dyaw_deg = _se2_distance(guess, record.candidate_from_query)
+        if record.accepted and (
+            dist_m > cfg.map_consistency_m or dyaw_deg > cfg.map_consistency_deg
+        ):
+            record = replace(
+                record,
+                accepted=False,
+                reason=f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from the vote's prediction",
+            )
+        if record.accepted and not record.constraint_ratio >= cfg.confirm_min_constraint_ratio:
+            record = replace(
+                record,
+                accepted=False,
+                reason=f"constraint_ratio {record.constraint_ratio:.2f} < "
+                f"{cfg.confirm_min_constraint_ratio} (loops.confirm_min_constraint_ratio)",
+            )
+        if record.accepted:
+            hyp.confirmed.append(_PendingLoop(record, ver.information))
+        else:
+            self.loops.append(record)
+        hyp.checks += 1
+        if len(hyp.confirmed) >= cfg.confirm_min_loops or hyp.checks == cfg.confirm_max_checks:
+            return self._settle(hyp)
+        return None
+
+    def _settle(self, hyp: _Confirmation) -> bool:
+        """Close a confirmation: with enough loops they join the votes and the groups link
+        (True); otherwise, or when other loops linked the groups meanwhile, they are logged as
+        rejected (False)."""
+        cfg = self.config.loops
+        self._confirming.remove(hyp)
+        rec = hyp.vote.record
+
+        def linked() -> bool:
+            return (
+                self.sessions[rec.query.session].group == self.sessions[rec.candidate.session].group
+            )
+
+        reason = "the sessions were linked by other loops meanwhile"
+        if not linked():
+            reason = (
+                f"{len(hyp.confirmed)} of {hyp.checks} confirmations of a link vote "
+                f"(need {cfg.confirm_min_loops} that agree)"
+            )
+            if len(hyp.confirmed) >= cfg.confirm_min_loops:
+                self._votes.extend(hyp.confirmed)
+                self._try_merge(
+                    self.sessions[rec.query.session].group,
+                    self.sessions[rec.candidate.session].group,
+                )
+                if linked():
+                    self._closed.update(p.record.query for p in hyp.confirmed)
+                    return True
+                for p in hyp.confirmed:  # they disagreed with the vote after all
+                    self._votes.remove(p)
+                reason = "the confirmations disagree with the vote"
+        for p in hyp.confirmed:
+            self.loops.append(replace(p.record, accepted=False, reason=reason))
+        return False
 
     def _weak(self, record: LoopCandidate) -> bool:
         """Whether a rejected global registration is a weak vote (``loops.weak_vote_*``)."""

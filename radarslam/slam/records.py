@@ -65,7 +65,9 @@ class LoopCandidate:
     inlier_rmse_m: float = float("nan")
     overlap: float = float("nan")
     tight_fitness: float = float("nan")
-    #: what proposed the candidate: "recognition" (AutoPlace) or "proximity" (the map)
+    #: what proposed the candidate: "recognition" (AutoPlace), "proximity" (the map),
+    #: "reversed" (AutoPlace's turned images), "scancontext", or "confirmation" (the placement a
+    #: lone link vote predicts)
     source: str = "recognition"
     constraint_ratio: float = float("nan")
 

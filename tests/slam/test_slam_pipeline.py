@@ -89,13 +89,14 @@ class _ScriptedVerifier:
     """Accepts what ``accept(pipeline, query, candidate)`` returns a pose for; a (pose, tight
     fitness, constraint ratio) triple is a registration rejected by the tight-fitness test."""
 
-    def __init__(self, pipeline, accept):
+    def __init__(self, pipeline, accept, constraint_ratio=0.95):
         self.pipeline = pipeline
         self.accept = accept
+        self.constraint_ratio = constraint_ratio  # of the accepted ones
 
     def verify_candidate(self, query, candidate, tq, tc, distance, *_args):
         pose = self.accept(self.pipeline, query, candidate)
-        tight, ratio = 0.2, 0.95
+        tight, ratio = 0.2, self.constraint_ratio
         if isinstance(pose, tuple):
             pose, tight, ratio = pose
             ok, reason = False, f"tight_fitness {tight:.3f} < 0.12"
@@ -336,9 +337,10 @@ def test_a_session_after_a_merge_keeps_its_own_group(sim_dataroot):
     assert sorted(len(c.sessions) for c in res.components) == [1, 2]
 
 
-def _run_with_proximity(reader, scenes, accept, prox, **loops):
+def _run_with_proximity(reader, scenes, accept, prox, ratios=(0.95, 0.95), **loops):
     """A run with scripted recognition votes (``accept``) and scripted proximity verification
-    (``prox``, None: the real verifier must never be asked); returns (pipeline, result, asked)."""
+    (``prox``, None: the real verifier must never be asked); ``ratios``: the constraint ratios
+    of the accepted votes and proximity registrations. Returns (pipeline, result, asked)."""
     asked = []
 
     def record(pipeline, q, c):
@@ -347,7 +349,8 @@ def _run_with_proximity(reader, scenes, accept, prox, **loops):
 
     loops = {"num_candidates": 3, "proximity_radius_m": 30.0, **loops}
     pipeline = _scripted_pipeline(reader, accept, **loops)
-    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, record)
+    pipeline.verifier.constraint_ratio = ratios[0]
+    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, record, ratios[1])
     return pipeline, pipeline.run(scenes), asked
 
 
@@ -396,6 +399,126 @@ def test_key_frames_before_the_link_are_caught_up_by_proximity(reader, scenes):
     assert first_asks == [0, 1], "each earlier key frame is caught up once, in order"
     caught = [lp for lp in res.accepted_loops if lp.source == "proximity" and lp.query.index < 2]
     assert len(caught) == 2
+
+
+# A lone link vote at the second session's key frame 4 (y = 406 m on tiny; key frames about 4 m
+# apart, the first session ending at y = 374 m): with 6 m spacing its confirmations are key
+# frames 2 and 0, both within the 30 m proximity radius of the first session's end.
+_CONFIRM = {"reversed_search": False, "confirm_spacing_m": 6.0}
+
+
+def _confirmations(res):
+    return [lp for lp in res.loops if lp.source == "confirmation"]
+
+
+def test_a_lone_vote_is_confirmed_from_its_prediction_and_links(reader, scenes):
+    pipeline, res, asked = _run_with_proximity(
+        reader, scenes, _link_votes_up_to(4, 4), _true_pose, **_CONFIRM
+    )
+    first, second = scenes
+    assert [(q.session, q.index) for q, _ in asked[:2]] == [(second, 2), (second, 0)]
+    kfs = pipeline._kf_by_key
+    for q, c in asked[:2]:  # the first session's key frame nearest to where the vote puts it
+        assert c.session == first
+        gap = np.linalg.norm(kfs[q].gt_pose[:2, 3] - kfs[c].gt_pose[:2, 3])
+        assert (
+            gap
+            < min(
+                np.linalg.norm(kfs[q].gt_pose[:2, 3] - k.gt_pose[:2, 3])
+                for k in pipeline.key_frames(first)
+            )
+            + 1.0
+        )
+    assert len(res.components) == 1
+    confirmations = _confirmations(res)
+    assert [(lp.query.index, lp.accepted, lp.reason) for lp in confirmations] == [
+        (2, True, "ok"),
+        (0, True, "ok"),
+    ]
+    second_run = res.sessions[1]
+    err = np.linalg.norm(second_run.slam_poses[:, :2, 3] - second_run.gt_poses[:, :2, 3], axis=1)
+    assert err.max() < 1.0
+
+
+@pytest.mark.parametrize(
+    ("accepted_queries", "min_loops", "linked", "reason"),
+    [
+        ((), 2, False, "scripted reject"),
+        ((2,), 2, False, "1 of 2 confirmations of a link vote (need 2 that agree)"),
+        ((2,), 1, True, "ok"),  # settled by the first check
+    ],
+)
+def test_a_lone_vote_links_only_with_enough_confirmations(
+    reader, scenes, accepted_queries, min_loops, linked, reason
+):
+    def prox(pipeline, q, c):
+        return _true_pose(pipeline, q, c) if q.index in accepted_queries else None
+
+    _, res, asked = _run_with_proximity(
+        reader, scenes, _link_votes_up_to(4, 4), prox, confirm_min_loops=min_loops, **_CONFIRM
+    )
+    assert len(res.components) == (1 if linked else 2)
+    confirmations = _confirmations(res)
+    assert sorted(lp.query.index for lp in confirmations) == [0, 2][1 if linked else 0 :]
+    assert [q.index for q, _ in asked[: len(confirmations)]] == [2, 0][: len(confirmations)]
+    assert reason in [lp.reason for lp in confirmations]
+    if not linked:
+        assert not any(lp.accepted for lp in res.loops)
+        vote = [lp for lp in res.loops if lp.source == "recognition" and lp.fitness == 1.0]
+        assert [lp.reason for lp in vote] == ["too few consistent loops to link the session"]
+
+
+def test_key_frames_after_a_lone_vote_confirm_it(reader, scenes):
+    # The vote at key frame 1 (y = 393 m) has no earlier key frame 6 m away; key frames 3 and 5
+    # (y = 401 and 410 m, within 45 m of the first session's end) confirm it as they come.
+    _, res, asked = _run_with_proximity(
+        reader, scenes, _link_votes_up_to(1, 1), _true_pose, **_CONFIRM, proximity_radius_m=45.0
+    )
+    assert [q.index for q, _ in asked[:2]] == [3, 5]
+    assert len(res.components) == 1
+    assert [(lp.query.index, lp.reason) for lp in _confirmations(res)] == [(3, "ok"), (5, "ok")]
+
+
+def test_a_confirmation_far_from_the_prediction_is_rejected(reader, scenes):
+    def prox(pipeline, q, c):
+        return _true_pose(pipeline, q, c) @ se2_to_matrix(5.0, 0.0, 0.0)
+
+    _, res, _ = _run_with_proximity(reader, scenes, _link_votes_up_to(4, 4), prox, **_CONFIRM)
+    assert len(res.components) == 2
+    reasons = [lp.reason for lp in _confirmations(res)]
+    assert len(reasons) == 2
+    assert all(
+        r.endswith("deg from the vote's prediction") and r.startswith("5.0 m") for r in reasons
+    )
+
+
+@pytest.mark.parametrize(
+    ("ratios", "asks"),
+    [
+        # A vote along a straight street could be off along it: not confirmed at all.
+        ((0.5, 0.95), False),
+        # Confirmations along a straight street would follow such a vote: each must be well
+        # conditioned too.
+        ((0.95, 0.7), True),
+    ],
+)
+def test_ill_conditioned_votes_and_confirmations_link_nothing(reader, scenes, ratios, asks):
+    _, res, asked = _run_with_proximity(
+        reader, scenes, _link_votes_up_to(4, 4), _true_pose, ratios=ratios, **_CONFIRM
+    )
+    assert len(res.components) == 2
+    assert bool(asked) is asks
+    reasons = [lp.reason for lp in _confirmations(res)]
+    assert reasons == (
+        ["constraint_ratio 0.70 < 0.8 (loops.confirm_min_constraint_ratio)"] * 2 if asks else []
+    )
+
+
+def test_vote_confirmation_can_be_switched_off(reader, scenes):
+    _, res, asked = _run_with_proximity(
+        reader, scenes, _link_votes_up_to(4, 4), None, confirm_max_checks=0, **_CONFIRM
+    )
+    assert asked == [] and len(res.components) == 2
 
 
 def _poses_and_loops(res):
@@ -612,3 +735,46 @@ def test_a_recognizer_that_already_holds_places_is_refused(reader, recognizer):
     rec.add_descriptor(np.ones(rec.output_dim, np.float32) / rec.output_dim**0.5, [], "elsewhere")
     with pytest.raises(ConfigError, match=r"holds 1 places; it must be empty"):
         SlamPipeline(reader, SlamConfig(), recognizer=rec, progress=False)
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
+    # Sessions B and C are linked to each other (not to the map) with a placement 3 m off where
+    # B's odometry has drifted by now; B's latest loop, against C, was measured exactly. The
+    # guess for B's newest key frame against C's must chain from that loop, not the placement.
+    from radarslam.slam.pipeline import KeyFrame
+    from radarslam.slam.records import NodeKey
+
+    cfg = SlamConfig()
+    cfg.loops.guess_from_last_loop = enabled
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    for name in ("A", "B", "C"):
+        pipeline._start_session(name)
+    c_from_b_true = se2_to_matrix(20.0, 5.0, 0.3)  # C's odometry frame from B's (the truth)
+    group = pipeline.groups[pipeline.sessions["C"].group]
+    group.from_session["B"] = group.from_session["C"] @ c_from_b_true @ se2_to_matrix(0, 3, 0)
+    del pipeline.groups[pipeline.sessions["B"].group]
+    pipeline.sessions["B"].group = group.index
+
+    def key_frame(session, index, pose):
+        kf = KeyFrame(
+            NodeKey(session, index), index, "", pose, pose, np.zeros((0, 2)), None, np.eye(4)
+        )
+        pipeline.sessions[session].key_frames.append(kf)
+        pipeline._kf_by_key[kf.key] = kf
+        return kf
+
+    b0 = key_frame("B", 0, se2_to_matrix(0.0, 0.0, 0.0))
+    b1 = key_frame("B", 1, se2_to_matrix(10.0, 0.0, 0.1))
+    c0 = key_frame("C", 0, se2_to_matrix(-20.0, -4.0, -0.3))
+    c1 = key_frame("C", 1, se2_to_matrix(-12.0, -3.0, -0.2))
+    measured = invert(c0.odometry_pose) @ c_from_b_true @ b0.odometry_pose
+    pipeline._last_loop[("B", None)] = LoopCandidate(
+        b0.key, c0.key, 0, 0, 0.0, True, "ok", measured
+    )
+    truth = invert(c1.odometry_pose) @ c_from_b_true @ b1.odometry_pose
+    guess = pipeline._guess(b1, c1)
+    if enabled:
+        np.testing.assert_allclose(guess, truth, atol=1e-9)
+    else:  # the placement's 3 m
+        assert np.linalg.norm(guess[:2, 3] - truth[:2, 3]) == pytest.approx(3.0)
