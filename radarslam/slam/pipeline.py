@@ -680,8 +680,7 @@ class SlamPipeline:
         """For a session outside the map: AutoPlace queried with the key frame's image sequence
         turned by 180 deg, i.e. as the street looks driven the other way round, against the
         key frames of ``loops.reversed_targets``; the best match is verified by the translation
-        search over headings
-        near 180 deg (see ``loops.reversed_search``)."""
+        search over headings near 180 deg (see ``loops.reversed_search``)."""
         cfg = self.config.loops
         interval = cfg.reversed_every
         if cfg.reversed_backoff_searches is not None:
@@ -1037,13 +1036,16 @@ class SlamPipeline:
             )
             if len(hyp.confirmed) >= cfg.confirm_min_loops:
                 self._votes.extend(hyp.confirmed)
+                # before the merge: its catch-up need not search these key frames again
+                closing = {p.record.query for p in hyp.confirmed} - self._closed
+                self._closed |= closing
                 self._try_merge(
                     self.sessions[rec.query.session].group,
                     self.sessions[rec.candidate.session].group,
                 )
                 if linked():
-                    self._closed.update(p.record.query for p in hyp.confirmed)
                     return True
+                self._closed -= closing
                 for p in hyp.confirmed:  # they disagreed with the vote after all
                     self._votes.remove(p)
                 reason = "the confirmations disagree with the vote"

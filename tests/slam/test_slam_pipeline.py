@@ -438,6 +438,10 @@ def test_a_lone_vote_is_confirmed_from_its_prediction_and_links(reader, scenes):
     second_run = res.sessions[1]
     err = np.linalg.norm(second_run.slam_poses[:, :2, 3] - second_run.gt_poses[:, :2, 3], axis=1)
     assert err.max() < 1.0
+    # the link's catch-up searches the session's other key frames, not the confirmed ones again
+    asked_queries = [q.index for q, _ in asked]
+    assert asked_queries.count(2) == asked_queries.count(0) == 1
+    assert 1 in asked_queries[2:]
 
 
 @pytest.mark.parametrize(
