@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from radarslam.config import StrictModel
 from radarslam.odometry.config import OdometryConfig
@@ -151,10 +151,11 @@ class LoopDetectionConfig(StrictModel):
     #: loops); chained, every loop is correct, the largest error 0.65 m. False: the placement.
     guess_from_last_loop: bool = True
     #: Confirmation of a lone vote. A loop between two groups that links nothing yet predicts
-    #: where the query's session lies in the other group; up to ``confirm_max_checks`` earlier
-    #: key frames of that session, at least ``confirm_spacing_m`` from the vote's key frame and
-    #: from each other and predicted within ``proximity_radius_m`` of the other group's key
-    #: frames, are registered from that prediction (the proximity verifier, ICP only). When
+    #: where the query's session lies in the other group; up to ``confirm_max_checks`` key
+    #: frames of that session (earlier ones first, then later ones as they arrive), at least
+    #: ``confirm_spacing_m`` from the vote's key frame and from each other and predicted within
+    #: ``proximity_radius_m`` of the other group's key frames, are registered from that
+    #: prediction (the proximity verifier, ICP only). When
     #: ``confirm_min_loops`` of them are accepted near the prediction (``map_consistency_*``),
     #: they join the vote and the groups link. Reversed drives rarely yield two independent
     #: global matches, but once one is found the street's other key frames align from it.
@@ -167,6 +168,16 @@ class LoopDetectionConfig(StrictModel):
     confirm_min_loops: int = Field(2, ge=1)
     confirm_spacing_m: float = Field(10.0, gt=0.0)
     confirm_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
+
+    @model_validator(mode="after")
+    def _confirmations_can_link(self) -> LoopDetectionConfig:
+        if 0 < self.confirm_max_checks < self.confirm_min_loops:
+            raise ValueError(
+                f"confirm_min_loops={self.confirm_min_loops} exceeds confirm_max_checks="
+                f"{self.confirm_max_checks}: no lone vote could ever be confirmed "
+                "(confirm_max_checks=0 switches confirmation off)"
+            )
+        return self
 
 
 class SlamConfig(StrictModel):

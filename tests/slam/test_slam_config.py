@@ -18,3 +18,10 @@ def test_unknown_key_frame_reference_fails_before_any_data_is_read():
         ConfigError, match=r"key_frames.ref_channel=RADAR_TOP.*unknown radar channel"
     ):
         load_config(SlamConfig, None, ["key_frames.ref_channel=RADAR_TOP"])
+
+
+def test_confirmations_that_could_never_link_are_a_config_error():
+    with pytest.raises(ConfigError, match=r"confirm_min_loops=5 exceeds confirm_max_checks=4"):
+        load_config(SlamConfig, None, ["loops.confirm_min_loops=5"])
+    off = load_config(SlamConfig, None, ["loops.confirm_max_checks=0"])  # off, whatever the rest
+    assert off.loops.confirm_max_checks == 0
