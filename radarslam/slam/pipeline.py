@@ -901,16 +901,9 @@ class SlamPipeline:
         )
         record = replace(record, source=source)
         cand_session = self.sessions[cand.key.session]
-        if record.accepted and guess is not None and cand_session is not session:
+        if guess is not None and cand_session is not session:
             # The guess came from the map (or the group): a pose far from it is a look-alike.
-            cfg = self.config.loops
-            dist_m, dyaw_deg = _se2_distance(guess, record.candidate_from_query)
-            if dist_m > cfg.map_consistency_m or dyaw_deg > cfg.map_consistency_deg:
-                record = replace(
-                    record,
-                    accepted=False,
-                    reason=f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from the map's prediction",
-                )
+            record = self._near_prediction(record, guess, "the map's prediction")
         if not record.accepted:
             if guess is None and cand_session.group != session.group and self._weak(record):
                 self._votes.append(_PendingLoop(record, ver.information, weak=True))
@@ -935,6 +928,18 @@ class SlamPipeline:
                 self._confirm_vote(session, loop)
         session.last_loop_kf = query.key.index
         return True
+
+    def _near_prediction(self, record: LoopCandidate, guess: np.ndarray, what: str):
+        """``record`` rejected when accepted but farther than ``loops.map_consistency_*`` from
+        ``guess`` (``what`` names the prediction in the reason)."""
+        cfg = self.config.loops
+        dist_m, dyaw_deg = _se2_distance(guess, record.candidate_from_query)
+        if record.accepted and (
+            dist_m > cfg.map_consistency_m or dyaw_deg > cfg.map_consistency_deg
+        ):
+            reason = f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from {what}"
+            return replace(record, accepted=False, reason=reason)
+        return record
 
     def _confirm_vote(self, session: _Session, vote: _PendingLoop) -> None:
         """A vote between two groups that linked nothing: check the placement it predicts at
@@ -989,16 +994,9 @@ class SlamPipeline:
             self._local_map(other, past_only=False),
             guess,
         )
-        record = replace(record, source="confirmation")
-        dist_m, dyaw_deg = _se2_distance(guess, record.candidate_from_query)
-        if record.accepted and (
-            dist_m > cfg.map_consistency_m or dyaw_deg > cfg.map_consistency_deg
-        ):
-            record = replace(
-                record,
-                accepted=False,
-                reason=f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from the vote's prediction",
-            )
+        record = self._near_prediction(
+            replace(record, source="confirmation"), guess, "the vote's prediction"
+        )
         if record.accepted and not record.constraint_ratio >= cfg.confirm_min_constraint_ratio:
             record = replace(
                 record,
