@@ -20,6 +20,15 @@ class KeyFrameConfig(StrictModel):
     #: A verification local map is the key frame's cloud plus this many neighbours on each side
     #: (only past ones for the query, which has no future yet), placed with odometry.
     local_map_neighbors: int = Field(4, ge=0, le=50)
+    #: The candidate's neighbours in its verification local map: "centred" (both sides),
+    #: "past" (earlier ones only, as for the query), or "past_if_reversed": past when the map
+    #: (or odometry) predicts a revisit the other way round, centred otherwise. Static-looking
+    #: clutter follows each drive's path; a turned query's past key frames lie where the
+    #: candidate's future ones do, so centred maps overlap two paths in opposite lanes and the
+    #: registration pulls them together (benchmark: reversed loops 0.14 m off to the side on
+    #: average; past_if_reversed: ATE ratio 0.33 -> 0.27, recall 0.96 -> 0.90; "past" for
+    #: every candidate linked 2 groups fewer). docs/results.md, tenth session.
+    candidate_map: Literal["centred", "past", "past_if_reversed"] = "past_if_reversed"
     #: Which dynamic-point removal cleans the key-frame clouds: the odometry's joint Doppler fit
     #: of every frame (free: it is already computed) or AutoPlace's DPR run again per sweep
     #: (Algorithm 1 of the paper, as the place-recognition training data was made).
@@ -64,6 +73,13 @@ class LoopDetectionConfig(StrictModel):
     #: accepted, none wrong, vs 122 with the global thresholds on whole maps).
     proximity_max_range_m: float | None = Field(60.0, gt=0.0)
     proximity_min_tight_fitness: float = Field(0.08, ge=0.0, le=1.0)
+    #: Proximity registrations drop points with fewer than this many others within 0.5 m in
+    #: their local map (the verifier's ``min_neighbors``; None: the verifier's setting): the
+    #: clutter above is single returns, a reflector's are repeated. Benchmark loops 0.17 ->
+    #: 0.12 m RMS. Only here: the global thresholds were tuned with the clutter in (all
+    #: verifiers filtered: 72 wrong loops), and so were the confirmations' constraint ratios
+    #: (filtered: 2 sessions fewer linked), so confirmations keep every point.
+    proximity_min_neighbors: int | None = Field(2, ge=0)
     #: ICP stopping tolerance for proximity registrations. 1e-3 halves their time (21 -> 11 ms
     #: on 145 city cases) but on the whole city subset accepted 605 instead of 611 loops (recall
     #: 0.925 vs 0.934) without a measurable gain in throughput, since the odometry process is the
@@ -155,7 +171,7 @@ class LoopDetectionConfig(StrictModel):
     #: frames of that session (earlier ones first, then later ones as they arrive), at least
     #: ``confirm_spacing_m`` from the vote's key frame and from each other and predicted within
     #: ``proximity_radius_m`` of the other group's key frames, are registered from that
-    #: prediction (the proximity verifier, ICP only). When
+    #: prediction (the proximity settings, ICP only, without ``proximity_min_neighbors``). When
     #: ``confirm_min_loops`` of them are accepted near the prediction (``map_consistency_*``),
     #: they join the vote and the groups link. Reversed drives rarely yield two independent
     #: global matches, but once one is found the street's other key frames align from it.

@@ -3,7 +3,8 @@
 Radar local maps are sparse and places are often revisited in the opposite direction, so one ICP
 from one initial guess is not enough. :class:`LoopVerifier` therefore
 
-1. voxel-downsamples both (N, 2) maps;
+1. optionally drops points without ``min_neighbors`` others nearby (single clutter returns),
+   then voxel-downsamples both (N, 2) maps;
 2. tries heading hypotheses every ``heading_step_deg`` around the initial guess (the default 30
    includes 0, +-90 and 180 deg), all round or within ``heading_range_deg`` of the guess's
    heading; for each, a coarse 2-D correlative search over translation
@@ -75,6 +76,12 @@ class LoopVerifierConfig(StrictModel):
     # keep all). Far radar points are what tells look-alike streets apart in the global search,
     # so only the proximity search (a guess from the map) uses this.
     max_range_m: float | None = Field(None, gt=0)
+    # Persistence: a point with fewer than this many others within persistence_radius_m of it
+    # in its local map is dropped (0: keep all). Clutter that looks static to the Doppler test
+    # lies at random around each sweep's sensor, so it piles up along the driven path; two
+    # local maps of a street driven in opposite lanes then attract each other's paths.
+    min_neighbors: int = Field(0, ge=0)
+    persistence_radius_m: float = Field(0.5, gt=0)
     # acceptance
     min_fitness: float = Field(0.45, ge=0, le=1)
     max_inlier_rmse_m: float = Field(0.6, gt=0)
@@ -113,6 +120,16 @@ def _crop(xy: np.ndarray, max_range_m: float | None) -> np.ndarray:
     if max_range_m is None:
         return xy
     return xy[np.einsum("ij,ij->i", xy, xy) <= max_range_m**2]
+
+
+def persistent_points(xy: np.ndarray, min_neighbors: int, radius_m: float) -> np.ndarray:
+    """The points with at least ``min_neighbors`` other points within ``radius_m``."""
+    if min_neighbors <= 0 or len(xy) == 0:
+        return xy
+    from scipy.spatial import cKDTree
+
+    counts = cKDTree(xy).query_ball_point(xy, radius_m, return_length=True)
+    return xy[counts > min_neighbors]  # each point counts itself
 
 
 def voxel_downsample_2d(xy: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -190,6 +207,8 @@ class LoopVerifier:
         cfg = self.config
         q = _crop(_as_xy(query_cloud_xy, "query cloud"), cfg.max_range_m)
         c = _crop(_as_xy(candidate_cloud_xy, "candidate cloud"), cfg.max_range_m)
+        q = persistent_points(q, cfg.min_neighbors, cfg.persistence_radius_m)
+        c = persistent_points(c, cfg.min_neighbors, cfg.persistence_radius_m)
         q = voxel_downsample_2d(q, cfg.voxel_size_m)
         c = voxel_downsample_2d(c, cfg.voxel_size_m)
         guess = np.eye(4)

@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import bisect
 import logging
+import math
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -325,18 +326,24 @@ class SlamPipeline:
         )
         # Proximity candidates come with the map's prediction, good to a metre or two: ICP from
         # it alone, no search over headings and translations.
-        self.proximity_verifier = LoopVerifier(
-            cfg.backend.loop_verification.model_copy(
-                update={
-                    "heading_step_deg": 360.0,
-                    "correlative_search": False,
-                    "refine_top_k": 1,
-                    "max_range_m": cfg.loops.proximity_max_range_m,
-                    "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
-                    "icp_relative_tolerance": cfg.loops.proximity_icp_relative_tolerance,
-                }
-            )
+        proximity = cfg.backend.loop_verification.model_copy(
+            update={
+                "heading_step_deg": 360.0,
+                "correlative_search": False,
+                "refine_top_k": 1,
+                "max_range_m": cfg.loops.proximity_max_range_m,
+                "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
+                "icp_relative_tolerance": cfg.loops.proximity_icp_relative_tolerance,
+            }
         )
+        # Lone votes are confirmed from their prediction the same way, but on every point: the
+        # constraint-ratio test they rely on was calibrated on maps with the clutter in.
+        self.confirmation_verifier = LoopVerifier(proximity)
+        if cfg.loops.proximity_min_neighbors is not None:
+            proximity = proximity.model_copy(
+                update={"min_neighbors": cfg.loops.proximity_min_neighbors}
+            )
+        self.proximity_verifier = LoopVerifier(proximity)
         # Turned-image candidates come with a rough relative heading (half a turn) but no
         # position: the global translation search, over headings near 180 deg only.
         self.reversed_verifier = LoopVerifier(
@@ -830,6 +837,14 @@ class SlamPipeline:
 
         return skip
 
+    def _cand_past(self, guess: np.ndarray | None) -> bool:
+        """Whether the candidate's local map takes its past key frames only
+        (``key_frames.candidate_map``), given the predicted candidate_from_query or None."""
+        mode = self.config.key_frames.candidate_map
+        if mode == "past_if_reversed":
+            return guess is not None and abs(math.atan2(guess[1, 0], guess[0, 0])) > math.pi / 2
+        return mode == "past"
+
     def _local_map(self, kf: KeyFrame, past_only: bool) -> np.ndarray:
         n = self.config.key_frames.local_map_neighbors
         frames = self.sessions[kf.key.session].key_frames
@@ -896,7 +911,7 @@ class SlamPipeline:
             cand.timestamp_us,
             distance,
             self._local_map(query, past_only=True),
-            self._local_map(cand, past_only=False),
+            self._local_map(cand, past_only=self._cand_past(guess)),
             guess if guess is not None else hint,
         )
         record = replace(record, source=source)
@@ -984,14 +999,14 @@ class SlamPipeline:
         other = found[0][1]
         hyp.taken.append(pose_a[:2, 3])
         guess = invert(self._pose_in_group(other)) @ pose_b
-        record, ver = self.proximity_verifier.verify_candidate(
+        record, ver = self.confirmation_verifier.verify_candidate(
             kf.key,
             other.key,
             kf.timestamp_us,
             other.timestamp_us,
             float("nan"),
             self._local_map(kf, past_only=True),
-            self._local_map(other, past_only=False),
+            self._local_map(other, past_only=self._cand_past(guess)),
             guess,
         )
         record = self._near_prediction(

@@ -3,7 +3,7 @@ import pytest
 
 from radarslam.errors import DataError
 from radarslam.geometry import invert, matrix_to_se2, se2_to_matrix
-from radarslam.slam.loop_closure import LoopVerifier, LoopVerifierConfig
+from radarslam.slam.loop_closure import LoopVerifier, LoopVerifierConfig, persistent_points
 from radarslam.slam.records import NodeKey
 from radarslam.slam.synthetic_graph import observe_place, random_place
 
@@ -189,3 +189,47 @@ def test_constraint_ratio_flags_a_street_that_only_constrains_its_cross_directio
     v = strict.verify(query, cand, true)
     assert not v.accepted and v.reason.startswith("constraint_ratio")
     assert strict.verify(place_query, place_cand, place_true).accepted
+
+
+def test_persistent_points_keeps_points_with_enough_neighbours():
+    xy = np.array([[0.0, 0.0], [0.3, 0.0], [0.0, 0.4], [5.0, 5.0], [5.4, 5.0]])
+    np.testing.assert_array_equal(persistent_points(xy, 2, 0.5), xy[:3])  # itself not counted
+    np.testing.assert_array_equal(persistent_points(xy, 1, 0.5), xy)
+    assert persistent_points(xy, 0, 0.5) is xy
+    assert len(persistent_points(np.zeros((0, 2)), 2, 0.5)) == 0
+
+
+def _drive(seed, lane_y, heading):
+    """What one drive down a street (facades at y = +-9 m) sees, in the frame of its pose at
+    x = 0: each facade scatterer returns five noisy detections; static-looking clutter, one
+    detection each, lies at random within 15 m of the drive's path."""
+    rng = np.random.default_rng(seed)
+    facade = np.array([(x, y) for x in np.arange(-40.0, 40.0, 1.5) for y in (-9.0, 9.0)])
+    facade = facade[rng.uniform(size=len(facade)) < 0.7]
+    walls = np.repeat(facade, 5, axis=0) + rng.normal(0, 0.1, (5 * len(facade), 2))
+    along = rng.uniform(-25, 25, 150)
+    r, a = 15 * np.sqrt(rng.uniform(size=150)), rng.uniform(0, 2 * np.pi, 150)
+    clutter = np.column_stack([along + r * np.cos(a), lane_y + r * np.sin(a)])
+    pose = se2_to_matrix(0.0, lane_y, heading)
+    to_ego = invert(pose)
+    points = np.vstack([walls, clutter])
+    return points @ to_ego[:2, :2].T + to_ego[:2, 3], pose
+
+
+def test_persistence_filter_keeps_path_clutter_out_of_a_reversed_registration():
+    # A street driven the other way in the other lane: each map's clutter follows its own path,
+    # and matching it pulls the registration off; repeated facade returns survive the filter.
+    errors = {0: [], 2: []}
+    for seed in range(6):
+        cand, world_from_cand = _drive(seed, -1.75, 0.0)
+        query, world_from_query = _drive(100 + seed, 1.75, np.pi)
+        true = invert(world_from_cand) @ world_from_query
+        for min_neighbors in errors:
+            cfg = LoopVerifierConfig(
+                correlative_search=False, heading_step_deg=360, min_neighbors=min_neighbors
+            )
+            res = LoopVerifier(cfg).verify(query, cand, true @ se2_to_matrix(0.3, -0.3, 0.01))
+            assert res.accepted
+            errors[min_neighbors].append(_pose_error(res.candidate_from_query, true)[0])
+    assert max(errors[2]) < 0.05
+    assert max(errors[0]) > 0.2

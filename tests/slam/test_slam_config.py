@@ -25,3 +25,12 @@ def test_confirmations_that_could_never_link_are_a_config_error():
         load_config(SlamConfig, None, ["loops.confirm_min_loops=5"])
     off = load_config(SlamConfig, None, ["loops.confirm_max_checks=0"])  # off, whatever the rest
     assert off.loops.confirm_max_checks == 0
+
+
+def test_candidate_map_and_proximity_persistence_are_checked():
+    with pytest.raises(ConfigError, match=r"key_frames.candidate_map"):
+        load_config(SlamConfig, None, ["key_frames.candidate_map=future"])
+    with pytest.raises(ConfigError, match=r"loops.proximity_min_neighbors"):
+        load_config(SlamConfig, None, ["loops.proximity_min_neighbors=-1"])
+    off = load_config(SlamConfig, None, ["loops.proximity_min_neighbors=null"])
+    assert off.loops.proximity_min_neighbors is None

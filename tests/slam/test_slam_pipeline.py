@@ -350,7 +350,8 @@ def _run_with_proximity(reader, scenes, accept, prox, ratios=(0.95, 0.95), **loo
     loops = {"num_candidates": 3, "proximity_radius_m": 30.0, **loops}
     pipeline = _scripted_pipeline(reader, accept, **loops)
     pipeline.verifier.constraint_ratio = ratios[0]
-    pipeline.proximity_verifier = _ScriptedVerifier(pipeline, record, ratios[1])
+    scripted = _ScriptedVerifier(pipeline, record, ratios[1])
+    pipeline.proximity_verifier = pipeline.confirmation_verifier = scripted
     return pipeline, pipeline.run(scenes), asked
 
 
@@ -782,3 +783,29 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
         np.testing.assert_allclose(guess, truth, atol=1e-9)
     else:  # the placement's 3 m
         assert np.linalg.norm(guess[:2, 3] - truth[:2, 3]) == pytest.approx(3.0)
+
+
+def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit(reader, scenes):
+    # Two drives of a street in opposite lanes: where both local maps cover the same stretch,
+    # each one's path-following clutter attracts the other's path (docs/results.md, tenth
+    # session), so a turned revisit registers against the candidate's past key frames only.
+    cfg = SlamConfig()
+    cfg.loops.enabled = False
+    pipeline = SlamPipeline(reader, cfg, progress=False)
+    pipeline.run(scenes)
+    kf = pipeline.key_frames(scenes[0])[6]
+    past, centred = (len(pipeline._local_map(kf, past_only=p)) for p in (True, False))
+    assert past < centred
+    turned, ahead = se2_to_matrix(1.0, 3.0, np.pi - 0.2), se2_to_matrix(1.0, 0.0, 0.2)
+    expected = {
+        "past_if_reversed": {"turned": True, "ahead": False, "unknown": False},
+        "centred": {"turned": False, "ahead": False, "unknown": False},
+        "past": {"turned": True, "ahead": True, "unknown": True},
+    }
+    for mode, cases in expected.items():
+        pipeline.config.key_frames.candidate_map = mode
+        got = {
+            name: pipeline._cand_past(guess)
+            for name, guess in (("turned", turned), ("ahead", ahead), ("unknown", None))
+        }
+        assert got == cases, mode
