@@ -197,6 +197,11 @@ def test_persistent_points_keeps_points_with_enough_neighbours():
     np.testing.assert_array_equal(persistent_points(xy, 1, 0.5), xy)
     assert persistent_points(xy, 0, 0.5) is xy
     assert len(persistent_points(np.zeros((0, 2)), 2, 0.5)) == 0
+    assert len(persistent_points(xy[:2], 2, 0.5)) == 0
+    rng = np.random.default_rng(0)
+    cloud = rng.uniform(0, 20, (3000, 2))
+    counts = np.array([np.sum(np.hypot(*(cloud - p).T) <= 0.5) - 1 for p in cloud])
+    np.testing.assert_array_equal(persistent_points(cloud, 3, 0.5), cloud[counts >= 3])
 
 
 def _drive(seed, lane_y, heading):
