@@ -26,8 +26,8 @@ class KeyFrameConfig(StrictModel):
     #: clutter follows each drive's path; a turned query's past key frames lie where the
     #: candidate's future ones do, so centred maps overlap two paths in opposite lanes and the
     #: registration pulls them together (benchmark: reversed loops 0.14 m off to the side on
-    #: average; past_if_reversed: ATE ratio 0.33 -> 0.27, recall 0.96 -> 0.90; "past" for
-    #: every candidate linked 2 groups fewer). docs/results.md, tenth session.
+    #: average; past_if_reversed alone: ATE ratio 0.33 -> 0.27, recall 0.96 -> 0.90; "past"
+    #: for every candidate linked 2 groups fewer). docs/results.md, tenth session.
     candidate_map: Literal["centred", "past", "past_if_reversed"] = "past_if_reversed"
     #: Which dynamic-point removal cleans the key-frame clouds: the odometry's joint Doppler fit
     #: of every frame (free: it is already computed) or AutoPlace's DPR run again per sweep
@@ -75,10 +75,10 @@ class LoopDetectionConfig(StrictModel):
     proximity_min_tight_fitness: float = Field(0.08, ge=0.0, le=1.0)
     #: Proximity registrations drop points with fewer than this many others within 0.5 m in
     #: their local map (the verifier's ``min_neighbors``; None: the verifier's setting): the
-    #: clutter above is single returns, a reflector's are repeated. Benchmark loops 0.17 ->
-    #: 0.12 m RMS. Only here: the global thresholds were tuned with the clutter in (all
-    #: verifiers filtered: 72 wrong loops), and so were the confirmations' constraint ratios
-    #: (filtered: 2 sessions fewer linked), so confirmations keep every point.
+    #: clutter above is single returns, a reflector's are repeated. Benchmark, this alone:
+    #: median loop error 0.17 -> 0.12 m. Only here: the global thresholds were tuned with the
+    #: clutter in (all verifiers filtered: 72 wrong loops), and so were the confirmations'
+    #: constraint ratios (filtered: 2 sessions fewer linked), so confirmations keep every point.
     proximity_min_neighbors: int | None = Field(2, ge=0)
     #: ICP stopping tolerance for proximity registrations. 1e-3 halves their time (21 -> 11 ms
     #: on 145 city cases) but on the whole city subset accepted 605 instead of 611 loops (recall
