@@ -809,3 +809,18 @@ def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit
             for name, guess in (("turned", turned), ("ahead", ahead), ("unknown", None))
         }
         assert got == cases, mode
+
+
+@pytest.mark.parametrize("min_neighbors", [2, None])
+def test_only_proximity_registrations_drop_single_clutter_returns(reader, min_neighbors):
+    # The global thresholds and the confirmations' constraint-ratio test were calibrated with
+    # the clutter in the maps (docs/results.md, tenth session).
+    cfg = SlamConfig()
+    cfg.loops.proximity_min_neighbors = min_neighbors
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    assert pipeline.proximity_verifier.config.min_neighbors == (min_neighbors or 0)
+    for other in ("verifier", "guided_verifier", "reversed_verifier", "confirmation_verifier"):
+        assert getattr(pipeline, other).config.min_neighbors == 0, other
+    assert pipeline.confirmation_verifier.config == pipeline.proximity_verifier.config.model_copy(
+        update={"min_neighbors": 0}
+    )
