@@ -58,7 +58,6 @@ from __future__ import annotations
 
 import bisect
 import logging
-import math
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -68,7 +67,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from radarslam.errors import ConfigError, DataError
-from radarslam.geometry import invert, se2_to_matrix, wrap_angle
+from radarslam.geometry import invert, se2_to_matrix, wrap_angle, yaw_of
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.records import LoopCandidate, NodeKey
 from radarslam.types import AccumulatedCloud, SceneInfo
@@ -842,7 +841,7 @@ class SlamPipeline:
         (``key_frames.candidate_map``), given the predicted candidate_from_query or None."""
         mode = self.config.key_frames.candidate_map
         if mode == "past_if_reversed":
-            return guess is not None and abs(math.atan2(guess[1, 0], guess[0, 0])) > math.pi / 2
+            return guess is not None and abs(yaw_of(guess)) > np.pi / 2
         return mode == "past"
 
     def _local_map(self, kf: KeyFrame, past_only: bool) -> np.ndarray:
