@@ -211,6 +211,7 @@ class RadarOdometry:
             mirror_every=r.mirror_every,
             refine_iterations=r.refine_iterations,
             refine_max_extrapolation=r.refine_max_extrapolation,
+            refine_complete_neighborhoods=r.refine_complete_neighborhoods,
         )
 
     # --- input checks -------------------------------------------------------------------------

@@ -63,6 +63,7 @@ class ScanToMapRegistration:
         mirror_every: int,
         refine_iterations: int = 0,
         refine_max_extrapolation: float = 1.0,
+        refine_complete_neighborhoods: bool = False,
     ):
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
@@ -76,6 +77,7 @@ class ScanToMapRegistration:
         self.mirror_every = mirror_every
         self.refine_iterations = refine_iterations
         self.refine_max_extrapolation = refine_max_extrapolation
+        self.refine_complete_neighborhoods = refine_complete_neighborhoods
         self.map = VoxelHashMap(voxel_size_m, max_range_m, max_points_per_voxel)
         # One thread: deterministic, and the machines this runs on are shared.
         self.registration = Registration(max_num_iterations, convergence_criterion, 1)
@@ -152,6 +154,11 @@ class ScanToMapRegistration:
         steps point the same way with a ratio ``rho``. Aitken's extrapolation scales a step by
         ``1 / (1 - rho)``, the sum of that geometric tail, capped at
         ``refine_max_extrapolation``; a step that turns back (``rho <= 0``) is taken as is.
+
+        With ``refine_complete_neighborhoods`` only points with all ``line_neighbors`` map points
+        inside the correspondence distance take part: at the edge of the map (far ahead, a newly
+        seen object) the neighbours lie on the side the vehicle came from, and their mean would
+        pull the scan back along the track.
         """
         mirror = self._mirror_tree()
         k = self.line_neighbors
@@ -167,14 +174,20 @@ class ScanToMapRegistration:
             pw = pb @ rot.T + t
             # Bounded query: much cheaper than plain k-NN where the map is sparse.
             dist, idx = tree.query(pw, k=k, distance_upper_bound=max_dist)
-            valid = dist < max_dist
-            cnt = valid.sum(axis=1)
-            ok = cnt > 0
-            if ok.sum() < 3:
-                return pose
-            valid, cnt = valid[ok], cnt[ok]
-            nb = cloud[np.where(valid, idx[ok], 0)]  # missing neighbours: index len(cloud)
-            mean = np.einsum("mk,mki->mi", valid, nb) / cnt[:, None]
+            if self.refine_complete_neighborhoods:
+                ok = dist[:, -1] < max_dist  # sorted: the k-th is the farthest
+                if ok.sum() < 3:
+                    return pose
+                mean = cloud[idx[ok]].mean(axis=1)
+            else:
+                valid = dist < max_dist
+                cnt = valid.sum(axis=1)
+                ok = cnt > 0
+                if ok.sum() < 3:
+                    return pose
+                valid, cnt = valid[ok], cnt[ok]
+                nb = cloud[np.where(valid, idx[ok], 0)]  # missing neighbours: index len(cloud)
+                mean = np.einsum("mk,mki->mi", valid, nb) / cnt[:, None]
             r = pw[ok] - mean
             rb = r @ rot  # body frame, R^T r
             w = (s2 / (s2 + np.einsum("mi,mi->m", r, r))) ** 2

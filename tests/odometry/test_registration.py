@@ -168,3 +168,32 @@ def test_extrapolated_refinement_gets_nearer_the_fixed_point_per_search():
     mean = {k: float(np.mean(v)) for k, v in gaps.items()}
     assert mean["3 x8"] < 0.7 * mean["3 x1"], mean
     assert mean["5 x8"] < 0.8 * mean["5 x1"], mean
+
+
+@pytest.mark.parametrize("complete", [True, False])
+def test_refinement_ignores_points_at_the_edge_of_the_map(complete):
+    """Points whose nearest map points do not all lie within the correspondence distance sit at
+    the edge of the map, where the few neighbours they have lie behind them (the side the
+    vehicle came from). With ``refine_complete_neighborhoods`` they leave the refinement alone;
+    without, they pull the scan back along the track."""
+    rng = np.random.default_rng(3)
+    refl = rng.uniform(-40, 40, (80, 2))
+    refl = refl[np.linalg.norm(refl, axis=1) > 5]
+    reg = _registration(np.zeros((0, 2)), refine=3, extrapolation=8.0)
+    reg.refine_complete_neighborhoods = complete
+    for _ in range(10):
+        pts = _radar_scan(refl, rng)
+        reg.update(np.column_stack([pts, np.zeros(len(pts))]), np.eye(4))
+    # The edge: two map points behind a cluster of new returns 0.6-1.0 m further ahead.
+    edge_map = np.array([[60.0, 0.0], [60.0, 0.4]])
+    reg.update(np.column_stack([edge_map, np.zeros(2)]), np.eye(4))
+    edge_scan = np.column_stack([rng.uniform(60.6, 61.0, 12), rng.uniform(-0.2, 0.6, 12)])
+    scan = np.column_stack([_radar_scan(refl, rng), np.zeros(len(refl))])
+    with_edge = np.concatenate([scan, np.column_stack([edge_scan, np.zeros(12)])])
+    start = exp_se2(np.array([0.02, -0.01, np.deg2rad(0.05)]))
+    inside = reg._refine(scan, start, 2.1, 0.7)
+    both = reg._refine(with_edge, start, 2.1, 0.7)
+    if complete:
+        np.testing.assert_array_equal(both, inside)
+    else:
+        assert both[0, 3] < inside[0, 3] - 0.005, (both[0, 3], inside[0, 3])
