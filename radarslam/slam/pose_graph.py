@@ -19,7 +19,8 @@ with ``pose_type="pose3"`` they are embedded into 6x6 with tight z / roll / pitc
 
 Robust kernels and iSAM2 (dependencies.md §5.8): a robust loop factor that arrives while drift is
 large stays down-weighted in iSAM2's cached linearisation, so :meth:`optimize_batch` (LM from the
-iSAM2 estimate, optionally followed by GNC with the odometry and priors as known inliers) should run
+iSAM2 estimate, then LM with a redescending Geman-McClure kernel on the loops from the better of
+two starts, optionally followed by GNC with the odometry and priors as known inliers) should run
 at the end of a run; :meth:`estimate` returns whichever solve is newest.
 """
 
@@ -76,6 +77,14 @@ class PoseGraphConfig(StrictModel):
     isam2: Isam2Config = Isam2Config()
     batch: BatchConfig = BatchConfig()
     gnc: GncConfig = GncConfig()
+    # A second batch solve with a redescending kernel on the loops (before GNC, if both are on).
+    # A Cauchy loop still pulls with a force that falls off only as 1 / error, so hundreds of
+    # false loops tens of metres long add up; Geman-McClure's falls off as 1 / error^3. It is
+    # non-convex, so it starts from both the first solve's result and the estimate before it
+    # and keeps the solution of least cost. The parameter is in whitened units (a loop's
+    # sigma, >= 0.1 m): 5 keeps loops of a few sigma at full weight. "none": off.
+    final_robust: Literal["none", "geman_mcclure"] = "geman_mcclure"
+    final_robust_param: float = Field(5.0, gt=0)
 
 
 @dataclass(frozen=True)
@@ -419,6 +428,8 @@ class PoseGraph:
         opt = g.LevenbergMarquardtOptimizer(self._graph, start, p)
         result = opt.optimize()
         self.last_batch_iterations = int(opt.iterations())
+        if self.config.final_robust != "none" and self._loops:
+            result = self._redescending_solve((start, result), p)
         gnc = self.config.gnc.enabled if use_gnc is None else use_gnc
         if gnc and self._loops:
             gp = g.GncLMParams(p)
@@ -434,6 +445,31 @@ class PoseGraph:
         self._newest = "batch"
         self.last_batch_time_s = time.perf_counter() - t0
         return self.estimate()
+
+    def _redescending_solve(self, starts, params):
+        """LM on a copy of the graph whose loop factors carry the ``final_robust`` kernel (the
+        graph itself keeps its kernels: iSAM2 and later solves go on from the same factors),
+        from each of ``starts``; the solution of least cost. A redescending kernel keeps the
+        basin it starts in: the first solve's may be one that many false loops pulled a
+        weakly linked session into, the newest estimate before it another."""
+        g = self._g
+        est = g.noiseModel.mEstimator.GemanMcClure.Create(self.config.final_robust_param)
+        graph = g.NonlinearFactorGraph(self._graph)
+        for rec in self._loops:
+            noise = g.noiseModel.Robust.Create(est, self._noise_from_information(rec.information))
+            factor = self._between_factor(
+                self.gtsam_key(rec.key_a), self.gtsam_key(rec.key_b), rec.a_from_b, noise
+            )
+            graph.replace(rec.factor_index, factor)
+        best = None
+        for start in starts:
+            opt = g.LevenbergMarquardtOptimizer(graph, start, params)
+            result = opt.optimize()
+            self.last_batch_iterations += int(opt.iterations())
+            cost = graph.error(result)
+            if best is None or cost < best[0]:
+                best = (cost, result)
+        return best[1]
 
     # --- read-out ------------------------------------------------------------------------------
 
