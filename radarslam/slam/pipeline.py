@@ -147,17 +147,23 @@ _TIMING_FIELDS = ("data_s", "odometry_s", "key_frame_s", "frames")
 @contextmanager
 def _one_torch_thread():
     """torch's intra-op pool down to one thread while the odometry process has the other core:
-    two threads then only contend (12-scene city run: 31 s with one, 38 s with two)."""
+    two threads then only contend (12-scene city run: 31 s with one, 38 s with two). Yields a
+    function that gives the pool its threads back, for when the odometry process is done."""
     torch = sys.modules.get("torch")  # never imported just for this
     if torch is None:
-        yield
+        yield lambda: None
         return
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
+
+    def restore() -> None:
+        if torch.get_num_threads() != previous:
+            torch.set_num_threads(previous)
+
     try:
-        yield
+        yield restore
     finally:
-        torch.set_num_threads(previous)
+        restore()
 
 
 def _can_fork() -> bool:
@@ -166,11 +172,13 @@ def _can_fork() -> bool:
     return "fork" in mp.get_all_start_methods()
 
 
-def _odometry_process(pipeline, infos, messages) -> None:
-    """Body of the forked odometry process: stream messages, then its timings (or its error)."""
+def _odometry_process(pipeline, infos, messages, finished) -> None:
+    """Body of the forked odometry process: stream messages, then its timings (or its error);
+    ``finished`` (an Event) is set once the work is done and only the queue is left."""
     try:
         for message in pipeline._odometry_messages(infos):
             messages.put(message)
+        finished.set()
         t = pipeline.timings
         messages.put(("done", {name: getattr(t, name) for name in _TIMING_FIELDS}))
     except BaseException as exc:  # handed to the parent, which raises it
@@ -413,8 +421,8 @@ class SlamPipeline:
         bar = self._progress_bar(infos)
         try:
             if self.config.pipelined and _can_fork():
-                with _one_torch_thread():
-                    self._consume_from_process(infos, bar)
+                with _one_torch_thread() as all_threads:
+                    self._consume_from_process(infos, bar, all_threads)
             else:
                 for message in self._odometry_messages(infos):
                     self._handle(message, bar)
@@ -529,18 +537,25 @@ class SlamPipeline:
             if span is not None:
                 yield ("span", span[0], span[1])
 
-    def _consume_from_process(self, infos: Sequence[SceneInfo], bar) -> None:
+    def _consume_from_process(
+        self, infos: Sequence[SceneInfo], bar, all_threads: Callable[[], None]
+    ) -> None:
         """Run :meth:`_odometry_messages` in a forked process and handle its messages here: on
         two cores the odometry and the key-frame work (recognition, registration, iSAM2) overlap.
         Identical results to the sequential run. A thread would not do: open3d's and kiss-icp's
-        bindings hold the GIL (measured: no gain)."""
+        bindings hold the GIL (measured: no gain). ``all_threads`` is called once the odometry
+        is done: the queue's backlog then has both cores."""
         import multiprocessing as mp
         import queue as queue_mod
 
         ctx = mp.get_context("fork")
-        messages = ctx.Queue(maxsize=64)
+        # Room for about 250 key frames (~40 MB): the key-frame side's work comes in bursts
+        # (sessions linking, catch-up searches), and a short queue would stall the odometry
+        # meanwhile, leaving a core idle later.
+        messages = ctx.Queue(maxsize=512)
+        finished = ctx.Event()
         proc = ctx.Process(
-            target=_odometry_process, args=(self, infos, messages), name="slam-odometry"
+            target=_odometry_process, args=(self, infos, messages, finished), name="slam-odometry"
         )
         proc.daemon = True
         proc.start()
@@ -561,6 +576,8 @@ class SlamPipeline:
                     for name, value in message[1].items():
                         setattr(self.timings, name, value)
                     break
+                if finished.is_set():
+                    all_threads()
                 self._handle(message, bar)
             proc.join()
         finally:
@@ -844,11 +861,22 @@ class SlamPipeline:
             return guess is not None and abs(yaw_of(guess)) > np.pi / 2
         return mode == "past"
 
-    def _local_map(self, kf: KeyFrame, past_only: bool) -> np.ndarray:
+    def _window(self, kf: KeyFrame, past_only: bool) -> tuple[int, int]:
+        """[lo, hi) of the key frames in ``kf``'s local map (its session's, so far)."""
         n = self.config.key_frames.local_map_neighbors
         frames = self.sessions[kf.key.session].key_frames
         lo = max(0, kf.key.index - n)
         hi = kf.key.index + 1 if past_only else min(len(frames), kf.key.index + n + 1)
+        return lo, hi
+
+    def _map_key(self, kf: KeyFrame, past_only: bool) -> tuple:
+        """Names a local map's content for the verifiers' caches: odometry poses and clouds
+        never change, so the key frame and its window determine the points."""
+        return (kf.key, *self._window(kf, past_only))
+
+    def _local_map(self, kf: KeyFrame, past_only: bool) -> np.ndarray:
+        frames = self.sessions[kf.key.session].key_frames
+        lo, hi = self._window(kf, past_only)
         ego_from_world = invert(kf.odometry_pose)
         chunks = []
         for other in frames[lo:hi]:
@@ -903,6 +931,7 @@ class SlamPipeline:
             source = "recognition" if verifier is None else "proximity"
         if verifier is None:
             verifier = self.verifier if guess is None else self.guided_verifier
+        cand_past = self._cand_past(guess)
         record, ver = verifier.verify_candidate(
             query.key,
             cand.key,
@@ -910,8 +939,9 @@ class SlamPipeline:
             cand.timestamp_us,
             distance,
             self._local_map(query, past_only=True),
-            self._local_map(cand, past_only=self._cand_past(guess)),
+            self._local_map(cand, past_only=cand_past),
             guess if guess is not None else hint,
+            cache_keys=(self._map_key(query, True), self._map_key(cand, cand_past)),
         )
         record = replace(record, source=source)
         cand_session = self.sessions[cand.key.session]
@@ -1007,6 +1037,10 @@ class SlamPipeline:
             self._local_map(kf, past_only=True),
             self._local_map(other, past_only=self._cand_past(guess)),
             guess,
+            cache_keys=(
+                self._map_key(kf, True),
+                self._map_key(other, self._cand_past(guess)),
+            ),
         )
         record = self._near_prediction(
             replace(record, source="confirmation"), guess, "the vote's prediction"

@@ -202,6 +202,17 @@ def test_persistent_points_keeps_points_with_enough_neighbours():
     cloud = rng.uniform(0, 20, (3000, 2))
     counts = np.array([np.sum(np.hypot(*(cloud - p).T) <= 0.5) - 1 for p in cloud])
     np.testing.assert_array_equal(persistent_points(cloud, 3, 0.5), cloud[counts >= 3])
+    # Dense reflector clusters (decided by their grid cell alone) among sparse returns, some
+    # pairs exactly a radius apart: the same points as counting every distance.
+    centres = rng.uniform(0, 30, (200, 2))
+    clusters = centres[rng.integers(0, 200, 4000)] + rng.normal(0, 0.2, (4000, 2))
+    pairs = rng.uniform(0, 30, (100, 2))
+    partners = pairs + np.array([0.5, 0.0])
+    cloud = np.vstack([clusters, rng.uniform(0, 30, (1500, 2)), pairs, partners])
+    d2 = ((cloud[:, None, :] - cloud[None, :, :]) ** 2).sum(axis=-1)
+    for k in (1, 2, 5):
+        counts = (d2 <= 0.25).sum(axis=1) - 1
+        np.testing.assert_array_equal(persistent_points(cloud, k, 0.5), cloud[counts >= k])
 
 
 def _drive(seed, lane_y, heading):
@@ -238,3 +249,25 @@ def test_persistence_filter_keeps_path_clutter_out_of_a_reversed_registration():
             errors[min_neighbors].append(_pose_error(res.candidate_from_query, true)[0])
     assert max(errors[2]) < 0.05
     assert max(errors[0]) > 0.2
+
+
+def test_cached_maps_give_the_same_verification():
+    cand, world_from_cand = _drive(7, -1.75, 0.0)
+    query, world_from_query = _drive(107, 1.75, np.pi)
+    guess = invert(world_from_cand) @ world_from_query @ se2_to_matrix(0.3, -0.3, 0.01)
+    cfg = LoopVerifierConfig(correlative_search=False, heading_step_deg=360, min_neighbors=2)
+    plain = LoopVerifier(cfg).verify(query, cand, guess)
+    cached = LoopVerifier(cfg)
+    keys = ("query", "candidate")
+    first = cached.verify(query, cand, guess, cache_keys=keys)
+    # A key names the map's content: the second call takes the prepared maps from the cache.
+    again = cached.verify(query[:0], cand[:0], guess, cache_keys=keys)
+    for res in (first, again):
+        assert res.accepted == plain.accepted and res.fitness == plain.fitness
+        np.testing.assert_array_equal(res.candidate_from_query, plain.candidate_from_query)
+    # Bounded: the oldest keys are dropped.
+    for n in range(LoopVerifier.cache_size + 5):
+        cached.verify(query, cand, guess, cache_keys=(("q", n), ("c", n)))
+    assert len(cached._prepared_maps) == LoopVerifier.cache_size
+    rejected = cached.verify(query[:0], cand[:0], guess, cache_keys=keys)
+    assert not rejected.accepted and rejected.reason.startswith("too few points")

@@ -94,7 +94,7 @@ class _ScriptedVerifier:
         self.accept = accept
         self.constraint_ratio = constraint_ratio  # of the accepted ones
 
-    def verify_candidate(self, query, candidate, tq, tc, distance, *_args):
+    def verify_candidate(self, query, candidate, tq, tc, distance, *_args, **_kwargs):
         pose = self.accept(self.pipeline, query, candidate)
         tight, ratio = 0.2, self.constraint_ratio
         if isinstance(pose, tuple):
