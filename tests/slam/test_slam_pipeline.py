@@ -824,3 +824,21 @@ def test_only_proximity_registrations_drop_single_clutter_returns(reader, min_ne
     assert pipeline.confirmation_verifier.config == pipeline.proximity_verifier.config.model_copy(
         update={"min_neighbors": 0}
     )
+
+
+def test_torch_runs_on_one_thread_until_the_odometry_process_is_done():
+    torch = pytest.importorskip("torch")
+    from radarslam.slam.pipeline import _one_torch_thread
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with _one_torch_thread() as all_threads:
+            assert torch.get_num_threads() == 1
+            all_threads()  # the odometry process is done: the backlog gets both cores
+            assert torch.get_num_threads() == 2
+            all_threads()
+            assert torch.get_num_threads() == 2
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(previous)
