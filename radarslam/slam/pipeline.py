@@ -1028,6 +1028,7 @@ class SlamPipeline:
         other = found[0][1]
         hyp.taken.append(pose_a[:2, 3])
         guess = invert(self._pose_in_group(other)) @ pose_b
+        cand_past = self._cand_past(guess)
         record, ver = self.confirmation_verifier.verify_candidate(
             kf.key,
             other.key,
@@ -1035,12 +1036,9 @@ class SlamPipeline:
             other.timestamp_us,
             float("nan"),
             self._local_map(kf, past_only=True),
-            self._local_map(other, past_only=self._cand_past(guess)),
+            self._local_map(other, past_only=cand_past),
             guess,
-            cache_keys=(
-                self._map_key(kf, True),
-                self._map_key(other, self._cand_past(guess)),
-            ),
+            cache_keys=(self._map_key(kf, True), self._map_key(other, cand_past)),
         )
         record = self._near_prediction(
             replace(record, source="confirmation"), guess, "the vote's prediction"

@@ -82,7 +82,8 @@ class PoseGraphConfig(StrictModel):
     # false loops tens of metres long add up; Geman-McClure's falls off as 1 / error^3. It is
     # non-convex, so it starts from both the first solve's result and the estimate before it
     # and keeps the solution of least cost. The parameter is in whitened units (a loop's
-    # sigma, >= 0.1 m): 5 keeps loops of a few sigma at full weight. "none": off.
+    # sigma, >= 0.1 m): with 5, a loop 3 sigma off keeps half its weight, one 50 m off none.
+    # "none": off.
     final_robust: Literal["none", "geman_mcclure"] = "geman_mcclure"
     final_robust_param: float = Field(5.0, gt=0)
 
