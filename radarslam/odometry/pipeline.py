@@ -43,12 +43,13 @@ the process when it does, dependencies.md pitfall 4).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from radarslam.errors import DataError
+from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert, rigid_problem
 from radarslam.odometry.config import OdometryConfig
 from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit
@@ -81,12 +82,43 @@ class OdometryResult:
     num_points: int  # points that entered registration (dynamic-free, in range)
     timing: FrameTiming
     ground_truth: np.ndarray  # the frame's world_from_ego from the dataset
+    #: A key frame of the odometry: a dataset key frame (nuScenes sample) that the
+    #: :class:`KeyFrameGate`, if any, let through.
     is_key_frame: bool = False
     sample_token: str = ""
     scene_name: str = ""
     #: Set on key frames (except a segment's first): motion since the previous key frame.
     key_frame_motion: np.ndarray | None = None
     key_frame_covariance: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class KeyFrameGate:
+    """Which dataset key frames become odometry key frames: one is passed over while the vehicle
+    has moved less than ``min_travel_m`` and turned less than ``min_turn_deg`` since the previous
+    key frame, unless ``max_interval_s`` (None: no limit) have passed (a car waiting at a light
+    would otherwise add the same place every 0.5 s). ``min_travel_m = 0`` passes every one."""
+
+    min_travel_m: float = 0.0
+    min_turn_deg: float = 5.0
+    max_interval_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.min_travel_m >= 0 and math.isfinite(self.min_travel_m)):
+            raise ConfigError(f"key-frame min_travel_m must be >= 0, got {self.min_travel_m!r}")
+        if not (self.min_turn_deg > 0 and math.isfinite(self.min_turn_deg)):
+            raise ConfigError(f"key-frame min_turn_deg must be > 0, got {self.min_turn_deg!r}")
+        if self.max_interval_s is not None and not self.max_interval_s > 0:
+            raise ConfigError(f"key-frame max_interval_s must be > 0, got {self.max_interval_s!r}")
+
+    def keeps(self, motion: np.ndarray, interval_s: float) -> bool:
+        """Whether a key frame at ``motion`` (4x4 prev_key_from_here) and ``interval_s`` after
+        the last one counts."""
+        if self.max_interval_s is not None and interval_s >= self.max_interval_s:
+            return True
+        travel = math.hypot(motion[0, 3], motion[1, 3])
+        turn = abs(math.degrees(math.atan2(motion[1, 0], motion[0, 0])))
+        return travel >= self.min_travel_m or turn >= self.min_turn_deg
 
 
 @dataclass
@@ -96,6 +128,7 @@ class _Interval:
     cov: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     anchor_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
     anchor_icp_cov: np.ndarray | None = None
+    anchor_us: int = 0
 
     def propagate(self, delta: np.ndarray, delta_cov: np.ndarray) -> None:
         ad = adjoint_se2(invert(delta))
@@ -110,10 +143,11 @@ class _Interval:
             cov = _fuse_cov(cov, self.anchor_icp_cov + icp_cov)
         return motion, cov
 
-    def reset(self, pose: np.ndarray, icp_cov: np.ndarray | None) -> None:
+    def reset(self, pose: np.ndarray, icp_cov: np.ndarray | None, timestamp_us: int) -> None:
         self.cov = np.zeros((3, 3))
         self.anchor_pose = pose
         self.anchor_icp_cov = icp_cov
+        self.anchor_us = timestamp_us
 
 
 def along_track_covariance(delta: np.ndarray, fraction: float) -> np.ndarray:
@@ -165,10 +199,16 @@ def _where(frame: RadarFrame) -> str:
 
 
 class RadarOdometry:
-    """Streaming radar odometry: ``process(frame)`` once per frame, in time order."""
+    """Streaming radar odometry: ``process(frame)`` once per frame, in time order.
 
-    def __init__(self, config: OdometryConfig | None = None):
+    Key frames are the dataset's (nuScenes samples), thinned by ``key_frame_gate`` if given;
+    the motion and covariance between two of them cover any passed over in between."""
+
+    def __init__(
+        self, config: OdometryConfig | None = None, key_frame_gate: KeyFrameGate | None = None
+    ):
         self.config = config or OdometryConfig()
+        self.key_frame_gate = key_frame_gate
         self.doppler = DopplerEstimator(self.config.doppler)
         self._q = np.diag(np.square(self.config.fusion.process_noise))
         self._growth = np.diag(self.config.fusion.invalid_doppler_growth)
@@ -388,10 +428,16 @@ class RadarOdometry:
         kf_motion = kf_cov = None
         if not first:
             self._kf.propagate(relative, delta_cov)
-        if frame.is_key_frame:
+        is_key_frame = bool(frame.is_key_frame)
+        if is_key_frame and self._kf_started and self.key_frame_gate is not None:
+            is_key_frame = self.key_frame_gate.keeps(
+                invert(self._kf.anchor_pose) @ pose,
+                (frame.timestamp_us - self._kf.anchor_us) * 1e-6,
+            )
+        if is_key_frame:
             if self._kf_started:
                 kf_motion, kf_cov = self._kf.relative(pose, icp_cov if accepted else None)
-            self._kf.reset(pose, icp_cov if accepted or first else None)
+            self._kf.reset(pose, icp_cov if accepted or first else None, int(frame.timestamp_us))
             self._kf_started = True
 
         self._pose, self._cov = pose, pose_cov
@@ -418,7 +464,7 @@ class RadarOdometry:
                 total_ms=(t4 - t0) * 1e3,
             ),
             ground_truth=ground_truth,
-            is_key_frame=bool(frame.is_key_frame),
+            is_key_frame=is_key_frame,
             sample_token=frame.sample_token,
             scene_name=frame.scene_name,
             key_frame_motion=kf_motion,

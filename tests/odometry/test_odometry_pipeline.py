@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from odometry_synth import World, drive, make_sweep
 
-from radarslam.errors import DataError
+from radarslam.errors import ConfigError, DataError
 from radarslam.eval.metrics import ate
-from radarslam.geometry import invert
+from radarslam.geometry import invert, se2_to_matrix
 from radarslam.odometry.baselines import PlainKissIcpOdometry, make_odometry
 from radarslam.odometry.config import OdometryConfig
 from radarslam.odometry.lie import adjoint_se2, exp_jacobian_twist, exp_se2, log_se2
-from radarslam.odometry.pipeline import RadarOdometry, along_track_covariance
+from radarslam.odometry.pipeline import KeyFrameGate, RadarOdometry, along_track_covariance
 from radarslam.odometry.registration import ScanToMapRegistration
 from radarslam.types import RADAR_DTYPE, RadarFrame
 
@@ -144,6 +144,51 @@ def test_key_frame_motions_and_covariances_are_consistent(world):
     # 3 dof: a calibrated covariance gives a mean NEES of 3. About 0.6 on this white-noise toy
     # (the covariance scales are set for the heavier-tailed simulator, where it is ~1.7-3.7).
     assert 0.3 < np.mean(nees) < 6.0, np.mean(nees)
+
+
+def test_key_frame_gate_passes_over_samples_taken_standing_still(world):
+    rng = np.random.default_rng(6)
+    # 3 s at 8 m/s, 6 s waiting, 3 s at 8 m/s; a dataset key frame every 6 frames (~2 Hz)
+    frames = drive(
+        world, rng, num_frames=156, speed_mps=lambda t: 8.0 if t < 3 or t >= 9 else 0.0, **NOISE
+    )
+    every = run("ours", frames)
+    gated = run(
+        RadarOdometry(key_frame_gate=KeyFrameGate(min_travel_m=1.0, min_turn_deg=5.0)), frames
+    )
+    for a, b in zip(every, gated, strict=True):  # the gate changes the key frames, nothing else
+        assert np.array_equal(a.world_from_ego, b.world_from_ego)
+    all_kf = [i for i, r in enumerate(every) if r.is_key_frame]
+    kept = [i for i, r in enumerate(gated) if r.is_key_frame]
+    stopped = [i for i in all_kf if 3.2 < i / 13 < 9.0]
+    assert set(kept) == set(all_kf) - set(stopped[1:]), (kept, stopped)  # one kf where it stops
+    assert len(stopped) >= 10
+    # Across the wait, one motion and a covariance covering the interval the samples were in.
+    i, j = kept[kept.index(stopped[0])], kept[kept.index(stopped[0]) + 1]
+    assert np.allclose(
+        gated[j].key_frame_motion, invert(every[i].world_from_ego) @ every[j].world_from_ego
+    )
+    assert np.all(np.linalg.eigvalsh(gated[j].key_frame_covariance) > 0)
+    for i in kept[1:]:
+        assert gated[i].key_frame_motion is not None
+
+
+def test_key_frame_gate_thresholds():
+    gate = KeyFrameGate(min_travel_m=1.0, min_turn_deg=5.0)
+    assert not gate.keeps(np.eye(4), 60.0)
+    assert not gate.keeps(se2_to_matrix(0.9, 0.3, np.radians(4.9)), 0.5)
+    assert gate.keeps(se2_to_matrix(1.0, 0.0, 0.0), 0.5)
+    assert gate.keeps(se2_to_matrix(0.0, 0.0, np.radians(-5.0)), 0.5)
+    waiting = KeyFrameGate(min_travel_m=1.0, max_interval_s=2.0)
+    assert not waiting.keeps(np.eye(4), 1.99) and waiting.keeps(np.eye(4), 2.0)
+    assert KeyFrameGate(min_travel_m=0.0).keeps(np.eye(4), 0.0)  # 0: every sample
+    for bad, match in (
+        ({"min_travel_m": -1.0}, "min_travel_m"),
+        ({"min_turn_deg": 0.0}, "min_turn_deg"),
+        ({"max_interval_s": 0.0}, "max_interval_s"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            KeyFrameGate(**bad)
 
 
 def test_deskew_moves_points_onto_the_world(world):
