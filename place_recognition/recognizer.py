@@ -32,6 +32,18 @@ from radarslam.errors import CheckpointError, DataError
 from radarslam.types import AccumulatedCloud
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "compact.pt"
+
+
+def checkpoint_path(checkpoint: str | Path | None) -> Path:
+    """The checkpoint file to load (None: the shipped compact weights); CheckpointError if it
+    is not there."""
+    path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+    if not path.is_file():
+        hint = "" if checkpoint is not None else " (default compact weights not installed)"
+        raise CheckpointError(f"{path}: checkpoint not found{hint}")
+    return path
+
+
 DB_FORMAT = "radarslam.place_db"
 
 #: The point fields a key frame's image and RCS values are made of (``frame_from_cloud``).
@@ -70,10 +82,7 @@ class PlaceRecognizer:
         #: SHA-256 of the checkpoint's weights (None for a model given in memory)
         self.checkpoint_digest: str | None = None
         if model is None:
-            path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
-            if not path.is_file():
-                hint = "" if checkpoint is not None else " (default compact weights not installed)"
-                raise CheckpointError(f"{path}: checkpoint not found{hint}")
+            path = checkpoint_path(checkpoint)
             from place_recognition.checkpoint import load_model
 
             model, _, ck_meta = load_model(path, device=self.device)

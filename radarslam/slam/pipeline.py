@@ -63,6 +63,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -172,20 +173,92 @@ def _can_fork() -> bool:
     return "fork" in mp.get_all_start_methods()
 
 
-def _odometry_process(pipeline, infos, messages, finished) -> None:
-    """Body of the forked odometry process: stream messages, then its timings (or its error);
-    ``finished`` (an Event) is set once the work is done and only the queue is left."""
+#: Frames per message from the reading process: one queue round trip per frame costs more than
+#: the frame's pickle.
+_FRAME_BATCH = 16
+
+
+def _put_error(queue, exc: BaseException, what: str) -> None:
     try:
-        for message in pipeline._odometry_messages(infos):
+        queue.put(("error", exc))
+    except Exception:  # an unpicklable error: say what it was
+        queue.put(("error", DataError(f"{what}: {type(exc).__name__}: {exc}")))
+
+
+def _reading_process(reader, infos, filters, frames) -> None:
+    """Body of the forked reading process: every scene's frames in batches, then
+    ``("end", name)``; after the last scene ``("done", seconds spent reading)``."""
+    try:
+        data_s = 0.0
+        for info in infos:
+            batch = []
+            t0 = time.perf_counter()
+            for frame in reader.iter_frames(info, filters=filters):
+                batch.append(frame)
+                if len(batch) == _FRAME_BATCH:
+                    data_s += time.perf_counter() - t0
+                    frames.put(("frames", batch))
+                    batch = []
+                    t0 = time.perf_counter()
+            data_s += time.perf_counter() - t0
+            if batch:
+                frames.put(("frames", batch))
+            frames.put(("end", info.name))
+        frames.put(("done", data_s))
+    except BaseException as exc:  # handed to the odometry process, which raises it
+        _put_error(frames, exc, "reading process")
+    finally:
+        frames.close()
+        frames.join_thread()
+
+
+class _QueuedFrames:
+    """The odometry process's frame source when a reading process reads: the frames of each
+    scene from its queue, in order; the reading time it reports becomes ``data_s``."""
+
+    def __init__(self, frames, timings: SlamTimings):
+        self._frames, self._timings = frames, timings
+
+    def __call__(self, info: SceneInfo):
+        while True:
+            message = self._frames.get()
+            kind = message[0]
+            if kind == "frames":
+                yield from message[1]
+            elif kind == "end":
+                if message[1] != info.name:  # a programming error, not a data problem
+                    raise AssertionError(f"reading process sent {message[1]}, not {info.name}")
+                return
+            elif kind == "error":
+                raise message[1]
+            else:
+                raise AssertionError(f"unexpected message {kind!r} from the reading process")
+
+    def finish(self) -> None:
+        """After the last scene: the reading time."""
+        message = self._frames.get()
+        if message[0] == "error":
+            raise message[1]
+        if message[0] != "done":
+            raise AssertionError(f"unexpected message {message[0]!r} from the reading process")
+        self._timings.data_s = message[1]
+
+
+def _odometry_process(pipeline, infos, messages, finished, frames=None) -> None:
+    """Body of the forked odometry process: stream messages, then its timings (or its error);
+    ``finished`` (an Event) is set once the work is done and only the queue is left. ``frames``:
+    the queue of a reading process (None: read here)."""
+    try:
+        source = None if frames is None else _QueuedFrames(frames, pipeline.timings)
+        for message in pipeline._odometry_messages(infos, source):
             messages.put(message)
+        if source is not None:
+            source.finish()
         finished.set()
         t = pipeline.timings
         messages.put(("done", {name: getattr(t, name) for name in _TIMING_FIELDS}))
     except BaseException as exc:  # handed to the parent, which raises it
-        try:
-            messages.put(("error", exc))
-        except Exception:  # an unpicklable error: say what it was
-            messages.put(("error", DataError(f"odometry process: {type(exc).__name__}: {exc}")))
+        _put_error(messages, exc, "odometry process")
     finally:
         messages.close()
         messages.join_thread()
@@ -309,7 +382,7 @@ class SlamPipeline:
 
     def __init__(self, reader, config: SlamConfig | None = None, recognizer=None, progress=True):
         from radarslam.nuscenes.filters import RadarPointFilter
-        from radarslam.odometry.pipeline import RadarOdometry
+        from radarslam.odometry.pipeline import KeyFrameGate, RadarOdometry
         from radarslam.slam.loop_closure import LoopVerifier
         from radarslam.slam.pose_graph import PoseGraph
 
@@ -317,7 +390,11 @@ class SlamPipeline:
         self.config = config or SlamConfig()
         cfg = self.config
         self.progress = progress
-        self.odometry = RadarOdometry(cfg.odometry.model_copy(deep=True))
+        kc = cfg.key_frames
+        self.odometry = RadarOdometry(
+            cfg.odometry.model_copy(deep=True),
+            KeyFrameGate(kc.min_travel_m, kc.min_turn_deg, kc.max_interval_s),
+        )
         pc = cfg.odometry.points
         self._frame_filter = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
         self.graph = PoseGraph(cfg.backend.pose_graph)
@@ -366,13 +443,20 @@ class SlamPipeline:
             from radarslam.slam.scancontext_candidates import ScanContextCandidates
 
             self.scancontext = ScanContextCandidates(cfg.loops.scancontext_ring_candidates)
-        self.recognizer = recognizer
-        if self.recognizer is None and cfg.loops.enabled:
-            self.recognizer = load_recognizer(cfg.loops.checkpoint, cfg.loops.recognizer_config)
-        if self.recognizer is not None:
-            self._check_recognizer_reference(loaded=recognizer is None)
+        self._recognizer = recognizer
+        #: The shipped (or configured) recognizer is loaded on first use, in run() once the
+        #: other processes are reading and running the odometry: torch and the weights take
+        #: ~1.5 s that the odometry process would otherwise wait for.
+        self._recognizer_loader = None
+        if recognizer is None and cfg.loops.enabled:
+            self._recognizer_loader = _RecognizerLoader(
+                cfg.loops.checkpoint, cfg.loops.recognizer_config
+            )
+            self._check_recognizer_reference(self._recognizer_loader.config, loaded=True)
+        if recognizer is not None:
+            self._check_recognizer_reference(getattr(recognizer, "config", None), loaded=False)
             # its places become loop candidates, and a candidate must be a key frame of this run
-            held = len(self.recognizer) if hasattr(self.recognizer, "__len__") else 0
+            held = len(recognizer) if hasattr(recognizer, "__len__") else 0
             if held:
                 raise ConfigError(
                     f"the place recognizer given to SlamPipeline holds {held} places; it must be "
@@ -421,8 +505,7 @@ class SlamPipeline:
         bar = self._progress_bar(infos)
         try:
             if self.config.pipelined and _can_fork():
-                with _one_torch_thread() as all_threads:
-                    self._consume_from_process(infos, bar, all_threads)
+                self._consume_from_process(infos, bar)
             else:
                 for message in self._odometry_messages(infos):
                     self._handle(message, bar)
@@ -467,10 +550,21 @@ class SlamPipeline:
         self.timings.final_optimization_s += time.perf_counter() - t0
         return self._result()
 
-    def _check_recognizer_reference(self, loaded: bool) -> None:
+    def _load_recognizer(self) -> None:
+        if self._recognizer_loader is not None:
+            self._recognizer = self._recognizer_loader.load()
+            self._recognizer_loader = None
+
+    @property
+    def recognizer(self):
+        """The place recognizer (None: loop detection off)."""
+        self._load_recognizer()
+        return self._recognizer
+
+    def _check_recognizer_reference(self, recognizer_config, loaded: bool) -> None:
         """The key frames are accumulated in the frame of ``key_frames.ref_channel``; the
         recognizer's images must be centred on the same radar (else every key frame fails)."""
-        acc = getattr(getattr(self.recognizer, "config", None), "accumulation", None)
+        acc = getattr(recognizer_config, "accumulation", None)
         want = getattr(acc, "ref_channel", None)
         have = self.config.key_frames.ref_channel
         if want is not None and want != have:
@@ -486,12 +580,19 @@ class SlamPipeline:
 
     # --- the odometry side: frames -> key-frame clouds -------------------------------------------
 
-    def _odometry_messages(self, infos: Sequence[SceneInfo]):
+    def _odometry_messages(self, infos: Sequence[SceneInfo], frames=None):
         """Odometry over every frame of the scenes, as messages for :meth:`_handle`:
         ``("session", name)``, ``("key_frame", name, _KeyFrameInput, cloud)``, ``("frames", n)``
         and ``("span", first_us, last_us)``. Nothing here reads what the key-frame side writes
-        (odometry never depends on loops), which is what lets it run in its own process."""
+        (odometry never depends on loops), which is what lets it run in its own process.
+        ``frames(info)`` gives a scene's frames (None: read them here)."""
         from radarslam.slam.keyframes import SweepBuffer
+
+        own_reading = frames is None
+        if own_reading:
+
+            def frames(info):
+                return self.reader.iter_frames(info, filters=self._frame_filter)
 
         cfg = self.config
         use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
@@ -509,9 +610,10 @@ class SlamPipeline:
             span = None
             pending = 0  # frames not yet reported to the progress bar
             t_data = time.perf_counter()
-            for frame in self.reader.iter_frames(info, filters=self._frame_filter):
+            for frame in frames(info):
                 t0 = time.perf_counter()
-                self.timings.data_s += t0 - t_data
+                if own_reading:  # else the reading process reports its own time
+                    self.timings.data_s += t0 - t_data
                 res = self.odometry.process(frame)
                 t1 = time.perf_counter()
                 self.timings.odometry_s += t1 - t0
@@ -521,7 +623,7 @@ class SlamPipeline:
                 masks = res.doppler.static_masks if use_odometry_mask else None
                 buffer.add_frame(frame, res.world_from_ego, twist, masks)
                 pending += 1
-                if frame.is_key_frame:
+                if res.is_key_frame:
                     t2 = time.perf_counter()
                     cloud = buffer.accumulate(
                         frame.timestamp_us, res.world_from_ego, frame.sample_token
@@ -537,53 +639,76 @@ class SlamPipeline:
             if span is not None:
                 yield ("span", span[0], span[1])
 
-    def _consume_from_process(
-        self, infos: Sequence[SceneInfo], bar, all_threads: Callable[[], None]
-    ) -> None:
-        """Run :meth:`_odometry_messages` in a forked process and handle its messages here: on
-        two cores the odometry and the key-frame work (recognition, registration, iSAM2) overlap.
-        Identical results to the sequential run. A thread would not do: open3d's and kiss-icp's
-        bindings hold the GIL (measured: no gain). ``all_threads`` is called once the odometry
-        is done: the queue's backlog then has both cores."""
+    def _consume_from_process(self, infos: Sequence[SceneInfo], bar) -> None:
+        """Run :meth:`_odometry_messages` in a forked process, fed by a second one that reads
+        the radar data, and handle its messages here: on two cores the odometry and the
+        key-frame work (recognition, registration, iSAM2) overlap. Identical results to the
+        sequential run. Threads would not do: open3d's and kiss-icp's bindings hold the GIL
+        (measured: no gain). torch gets one thread until the odometry is done, then both
+        cores for the queue's backlog."""
         import multiprocessing as mp
-        import queue as queue_mod
 
         ctx = mp.get_context("fork")
         # Room for about 250 key frames (~40 MB): the key-frame side's work comes in bursts
         # (sessions linking, catch-up searches), and a short queue would stall the odometry
         # meanwhile, leaving a core idle later.
         messages = ctx.Queue(maxsize=512)
+        # Reading (a sixth of the odometry process's work) in a third process: the odometry is
+        # the longest chain, and the key-frame side has room to share a core with the reader.
+        frames = ctx.Queue(maxsize=64)
         finished = ctx.Event()
-        proc = ctx.Process(
-            target=_odometry_process, args=(self, infos, messages, finished), name="slam-odometry"
-        )
-        proc.daemon = True
-        proc.start()
+        procs = {
+            "radar reading": ctx.Process(
+                target=_reading_process,
+                args=(self.reader, infos, self._frame_filter, frames),
+                name="slam-reading",
+            ),
+            "odometry": ctx.Process(
+                target=_odometry_process,
+                args=(self, infos, messages, finished, frames),
+                name="slam-odometry",
+            ),
+        }
+        for proc in procs.values():
+            proc.daemon = True
+            proc.start()
         try:
-            while True:
-                try:
-                    message = messages.get(timeout=1.0)
-                except queue_mod.Empty:
-                    if not proc.is_alive():
+            self._load_recognizer()  # while the data is read and the odometry starts
+            with _one_torch_thread() as all_threads:
+                self._consume(infos, bar, procs, messages, finished, all_threads)
+            for proc in procs.values():
+                proc.join()
+        finally:
+            for proc in procs.values():
+                if proc.is_alive():
+                    proc.terminate()
+                    proc.join()
+
+    def _consume(self, infos, bar, procs, messages, finished, all_threads) -> None:
+        """Handle the odometry process's messages until its "done"."""
+        import queue as queue_mod
+
+        while True:
+            try:
+                message = messages.get(timeout=1.0)
+            except queue_mod.Empty:
+                for what, proc in procs.items():
+                    # the reader may be done (exit code 0) long before the odometry
+                    if not proc.is_alive() and (proc.exitcode != 0 or what == "odometry"):
                         raise DataError(
-                            f"the odometry process ended without finishing "
+                            f"the {what} process ended without finishing "
                             f"(exit code {proc.exitcode}; scenes {infos[0].name}..)"
                         ) from None
-                    continue
-                if message[0] == "error":
-                    raise message[1]
-                if message[0] == "done":
-                    for name, value in message[1].items():
-                        setattr(self.timings, name, value)
-                    break
-                if finished.is_set():
-                    all_threads()
-                self._handle(message, bar)
-            proc.join()
-        finally:
-            if proc.is_alive():
-                proc.terminate()
-                proc.join()
+                continue
+            if message[0] == "error":
+                raise message[1]
+            if message[0] == "done":
+                for name, value in message[1].items():
+                    setattr(self.timings, name, value)
+                break
+            if finished.is_set():
+                all_threads()
+            self._handle(message, bar)
 
     def _handle(self, message: tuple, bar) -> None:
         kind = message[0]
@@ -1316,21 +1441,34 @@ class SlamPipeline:
         return tqdm(total=total, unit="frame", desc="slam", leave=False)
 
 
+class _RecognizerLoader:
+    """:func:`load_recognizer` in two steps: the recognizer config and the checkpoint's presence
+    are checked when made (a bad one fails before any work), torch and the weights are loaded by
+    :meth:`load`."""
+
+    def __init__(self, checkpoint: str | None, recognizer_config: str | None):
+        from place_recognition.config import PlaceRecognizerConfig
+        from place_recognition.recognizer import checkpoint_path
+        from radarslam.config import CONFIG_DIR, load_config
+
+        self.checkpoint = checkpoint
+        self.config = PlaceRecognizerConfig()  # what PlaceRecognizer uses when given none
+        if recognizer_config is not None:
+            path = Path(recognizer_config)
+            if not path.is_absolute() and not path.exists():
+                path = CONFIG_DIR / path
+            self.config = load_config(PlaceRecognizerConfig, path)
+        checkpoint_path(checkpoint)
+
+    def load(self):
+        from place_recognition.recognizer import PlaceRecognizer
+
+        return PlaceRecognizer(checkpoint=self.checkpoint, config=self.config)
+
+
 def load_recognizer(checkpoint: str | None, recognizer_config: str | None):
     """The place recognizer for the pipeline (shipped compact checkpoint by default)."""
-    from place_recognition.config import PlaceRecognizerConfig
-    from place_recognition.recognizer import PlaceRecognizer
-    from radarslam.config import CONFIG_DIR, load_config
-
-    cfg = None
-    if recognizer_config is not None:
-        from pathlib import Path
-
-        path = Path(recognizer_config)
-        if not path.is_absolute() and not path.exists():
-            path = CONFIG_DIR / path
-        cfg = load_config(PlaceRecognizerConfig, path)
-    return PlaceRecognizer(checkpoint=checkpoint, config=cfg)
+    return _RecognizerLoader(checkpoint, recognizer_config).load()
 
 
 __all__ = ["KeyFrame", "SlamPipeline", "SlamResult", "SlamTimings", "load_recognizer"]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from radarslam.errors import CheckpointError, ConfigError, DataError
-from radarslam.geometry import invert, se2_to_matrix
+from radarslam.geometry import invert, se2_to_matrix, yaw_of
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.pipeline import SlamPipeline, load_recognizer
 from radarslam.slam.records import LoopCandidate, LoopVerification
@@ -264,6 +264,11 @@ def test_bad_inputs_are_clear_errors(reader, tmp_path):
         SlamPipeline(reader, cfg, progress=False).run([])
     with pytest.raises(CheckpointError, match=r"missing\.pt"):
         load_recognizer(str(tmp_path / "missing.pt"), None)
+    # the pipeline loads its recognizer in run(), but a missing checkpoint fails at once
+    cfg = SlamConfig()
+    cfg.loops.checkpoint = str(tmp_path / "missing.pt")
+    with pytest.raises(CheckpointError, match=r"missing\.pt: checkpoint not found"):
+        SlamPipeline(reader, cfg, progress=False)
 
 
 def test_run_takes_one_scene_name_and_runs_once(reader, scenes):
@@ -291,6 +296,9 @@ def test_recognizer_of_another_reference_radar_fails_up_front(reader):
         r"images on RADAR_FRONT",
     ):
         SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    # the shipped recognizer is loaded later (in run()), but its config is checked now
+    with pytest.raises(ConfigError, match=r"centres its images on RADAR_FRONT"):
+        SlamPipeline(reader, cfg, progress=False)
 
 
 def test_unplaced_sessions_chain_into_the_map_as_a_group(sim_dataroot):
@@ -576,14 +584,27 @@ def test_an_error_in_the_odometry_process_reaches_the_caller(reader, scenes):
         SlamPipeline(_ReaderThatFails(reader, fail), cfg, progress=False).run(scenes)
 
 
-def test_a_dead_odometry_process_is_a_clear_error(reader, scenes):
+def test_a_dead_reading_or_odometry_process_is_a_clear_error(reader, scenes):
     import os
 
-    cfg = SlamConfig(pipelined=True)  # e.g. kiss-icp calling abort(): only the child dies
+    cfg = SlamConfig(pipelined=True)
     cfg.loops.enabled = False
     broken = _ReaderThatFails(reader, lambda: os._exit(3))
-    with pytest.raises(DataError, match=r"odometry process ended .*exit code 3"):
+    with pytest.raises(DataError, match=r"radar reading process ended .*exit code 3"):
         SlamPipeline(broken, cfg, progress=False).run(scenes)
+
+    pipeline = SlamPipeline(reader, cfg, progress=False)
+    process, calls = pipeline.odometry.process, []
+
+    def abort_after_20(frame):  # e.g. kiss-icp calling abort(): only that process dies
+        calls.append(frame)
+        if len(calls) == 20:
+            os._exit(4)
+        return process(frame)
+
+    pipeline.odometry.process = abort_after_20
+    with pytest.raises(DataError, match=r"odometry process ended .*exit code 4"):
+        pipeline.run(scenes)
 
 
 def test_proximity_search_within_one_session_skips_its_recent_past(reader, scenes):
@@ -842,3 +863,24 @@ def test_torch_runs_on_one_thread_until_the_odometry_process_is_done():
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(previous)
+
+
+def test_key_frame_gate_thins_key_frames_and_keeps_the_chain(reader, scenes):
+    runs = {}
+    for travel in (0.0, 3.0):
+        cfg = SlamConfig(pipelined=travel > 0)  # the gate works across the processes too
+        cfg.loops.enabled = False
+        cfg.key_frames.min_travel_m = travel
+        cfg.key_frames.max_interval_s = None
+        pipeline = SlamPipeline(reader, cfg, progress=False)
+        pipeline.run(scenes[:1])
+        runs[travel] = pipeline.key_frames(scenes[0])
+    every, gated = runs[0.0], runs[3.0]
+    assert 0 < len(gated) < len(every)
+    by_time = {kf.timestamp_us: kf for kf in every}
+    assert {kf.timestamp_us for kf in gated} <= set(by_time)
+    for prev, kf in pairwise(gated):
+        np.testing.assert_allclose(kf.odometry_pose, by_time[kf.timestamp_us].odometry_pose)
+        step = invert(prev.odometry_pose) @ kf.odometry_pose
+        np.testing.assert_allclose(kf.relative, step, atol=1e-9)
+        assert np.hypot(*step[:2, 3]) >= 3.0 or abs(yaw_of(step)) >= np.radians(5.0)
