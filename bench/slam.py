@@ -156,6 +156,13 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a key of configs/slam/default.yaml (dotted, e.g. key_frames.min_travel_m=0)",
+    )
+    ap.add_argument(
         "--isam2-nodes",
         type=int,
         default=10_000,
@@ -187,7 +194,7 @@ def main() -> None:
     scenes = [s.name for s in reader.scenes_for_location(reader.locations()[0])]
     scenes = scenes[: args.max_scenes] if args.max_scenes else scenes
     days = sorted({s.date_captured for s in reader.scenes() if s.name in scenes})
-    config = load_config(SlamConfig, CONFIG_DIR / "slam" / "default.yaml")
+    config = load_config(SlamConfig, CONFIG_DIR / "slam" / "default.yaml", args.set)
 
     odo = odometry_baseline(reader, scenes, config)
     t0 = time.perf_counter()
@@ -205,6 +212,11 @@ def main() -> None:
     report = evaluate_results(args.out, load_config(EvalConfig, CONFIG_DIR / "eval/default.yaml"))
     loops = report.loops.as_dict() if report.loops is not None else {}
 
+    # The odometry at SLAM's key frames: the samples its key-frame gate kept (the odometry is the
+    # same computation in both runs, so the poses there are the same too).
+    kept = {(s.name, int(t)) for s in result.sessions for t in s.timestamps_us}
+    at_kf = np.array([(n, int(t)) in kept for n, t in zip(odo["scene"], odo["t"], strict=True)])
+    odo = {k: (v[at_kf] if isinstance(v, np.ndarray) else v) for k, v in odo.items()}
     anchored = next(c for c in result.components if c.anchored)
     in_map = set(anchored.sessions)
     slam_est = np.concatenate([s.slam_poses for s in result.sessions if s.name in in_map])
