@@ -524,35 +524,41 @@ class _LikelihoodGrid:
     ) -> list[tuple[np.ndarray, float]]:
         """For each query (points in the candidate frame), the translation (2,) within
         +-radius_m maximising the summed grid likelihood, and that score normalised by the
-        query's occupied cells. One FFT of the grid serves every query (heading hypotheses)."""
+        query's occupied cells; of equal scores, the smallest translation. One FFT of the grid
+        serves every query (heading hypotheses)."""
         from scipy import fft
 
         r = math.ceil(radius_m / self.cell)
-        rasters = []
-        for q in queries:
-            qi = np.floor((q - self.origin) / self.cell).astype(np.int64)
-            # anchored at (min - r) so that shifts in [-r, r] keep indices non-negative
-            base = qi.min(axis=0) - r
-            rasters.append((qi - base, base))
-        qshape = np.max([qi.max(axis=0) + 1 + r for qi, _ in rasters], axis=0)
-        full = tuple(
-            fft.next_fast_len(int(n), real=True) for n in np.array(self.grid.shape) + qshape
-        )
-        qocc = np.zeros((len(rasters), *full), dtype=np.float32)  # float32: 2x faster FFTs
-        for k, (qi, _) in enumerate(rasters):
-            qocc[k, qi[:, 0], qi[:, 1]] = 1.0
-        # score(s) = sum_p qocc(p) grid(p + base + s): a cross-correlation, circular over `full`,
-        # which is large enough that no shift in the window wraps around.
-        grid = self.grid.astype(np.float32)
-        spec = fft.rfft2(grid, full)[None] * np.conj(fft.rfft2(qocc, axes=(-2, -1)))
-        corr = fft.irfft2(spec, full, axes=(-2, -1))
+        cells = [np.floor((q - self.origin) / self.cell).astype(np.int64) for q in queries]
+        # Only the grid under the queries, widened by the search radius, can score: the FFTs
+        # span that window, not grid and query side by side (3-4x fewer cells for a local map).
+        lo = np.min([qi.min(axis=0) for qi in cells], axis=0) - r
+        hi = np.max([qi.max(axis=0) for qi in cells], axis=0) + r
+        full = tuple(fft.next_fast_len(int(n), real=True) for n in hi - lo + 1)
+        window = np.zeros(full, dtype=np.float32)  # float32: 2x faster FFTs
+        g0 = np.maximum(lo, 0)
+        g1 = np.minimum(hi + 1, self.grid.shape)
+        if np.all(g1 > g0):
+            window[g0[0] - lo[0] : g1[0] - lo[0], g0[1] - lo[1] : g1[1] - lo[1]] = self.grid[
+                g0[0] : g1[0], g0[1] : g1[1]
+            ]
+        qocc = np.zeros((len(cells), *full), dtype=np.float32)
+        for k, qi in enumerate(cells):
+            qocc[k, qi[:, 0] - lo[0] - r, qi[:, 1] - lo[1] - r] = 1.0
+        # corr[k, s + r] = sum_u qocc(u) window(u + s + r): the score of shift s. Circular over
+        # `full`, but u + s + r stays inside the window, so nothing wraps around.
+        spec = fft.rfft2(window)[None] * np.conj(fft.rfft2(qocc, axes=(-2, -1)))
+        corr = fft.irfft2(spec, full, axes=(-2, -1))[:, : 2 * r + 1, : 2 * r + 1]
+        # Scores are multiples of 0.5 (the blur's weights): rounded, ties are exact and go to
+        # the shift nearest the initial guess rather than to the FFT's rounding noise.
+        halves = np.rint(2.0 * corr)
         sx = np.arange(-r, r + 1)
+        dist2 = (sx[:, None] ** 2 + sx[None, :] ** 2).astype(np.float64)
         out = []
-        for k, (_, base) in enumerate(rasters):
-            kx = (base[0] + sx) % full[0]
-            ky = (base[1] + sx) % full[1]
-            window = corr[k][np.ix_(kx, ky)]
-            ij = np.unravel_index(int(np.argmax(window)), window.shape)
+        for k in range(len(cells)):
+            best = halves[k] == halves[k].max()
+            ij = np.unravel_index(int(np.argmin(np.where(best, dist2, np.inf))), best.shape)
             shift = np.array([sx[ij[0]], sx[ij[1]]], dtype=np.float64) * self.cell
-            out.append((shift, float(window[ij]) / max(1.0, float(qocc[k].sum()))))
+            occupied = max(1.0, float(qocc[k].sum()))
+            out.append((shift, float(halves[k][ij]) / 2.0 / occupied))
         return out

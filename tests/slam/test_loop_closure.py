@@ -271,3 +271,39 @@ def test_cached_maps_give_the_same_verification():
     assert len(cached._prepared_maps) == LoopVerifier.cache_size
     rejected = cached.verify(query[:0], cand[:0], guess, cache_keys=keys)
     assert not rejected.accepted and rejected.reason.startswith("too few points")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_translation_search_matches_brute_force(seed):
+    # The FFT search spans only the grid under the queries: every shift's score must still be
+    # the plain sum, including queries hanging over the grid's edge, and ties go to the
+    # smallest shift.
+    from radarslam.slam.loop_closure import _LikelihoodGrid
+
+    rng = np.random.default_rng(seed)
+    cand = rng.uniform(0.0, 60.0, size=(400, 2))
+    queries = [
+        rng.uniform(-20.0, 40.0, size=(150, 2)),
+        cand[:120] + rng.normal(0.0, 0.3, size=(120, 2)) + [6.0, -4.0],
+        rng.uniform(50.0, 90.0, size=(80, 2)),  # mostly beyond the grid
+    ]
+    grid = _LikelihoodGrid(cand, cell_m=2.0)
+    radius_m, r = 9.0, 5
+    found = grid.best_shifts(queries, radius_m)
+    for q, (shift, score) in zip(queries, found, strict=True):
+        cells = np.unique(np.floor((q - grid.origin) / grid.cell).astype(int), axis=0)
+        best, best_d2, scores = -1.0, None, {}
+        for sx in range(-r, r + 1):
+            for sy in range(-r, r + 1):
+                idx = cells + np.array([sx, sy])
+                inside = np.all((idx >= 0) & (idx < grid.grid.shape), axis=1)
+                s = float(grid.grid[idx[inside, 0], idx[inside, 1]].sum())
+                scores[sx, sy] = s
+                d2 = sx * sx + sy * sy
+                if s > best + 1e-9 or (abs(s - best) < 1e-9 and d2 < best_d2):
+                    best, best_d2 = s, d2
+        i, j = np.round(shift / grid.cell).astype(int)
+        assert scores[i, j] == pytest.approx(best)
+        assert i * i + j * j == best_d2
+        assert score == pytest.approx(best / len(cells))
+    assert found[1][0] == pytest.approx([-6.0, 4.0])  # undoes the (6, -4) m offset
