@@ -503,6 +503,11 @@ def _constraint_ratio(neighbours: np.ndarray) -> float:
 class _LikelihoodGrid:
     """The candidate map as a blurred occupancy grid, for FFT translation search."""
 
+    #: Blur weights of a cell and of its 4 side neighbours. Every score is a sum of them, so a
+    #: multiple of ``_QUANTUM``, which lets the search compare scores exactly.
+    _CENTRE, _SIDE = 1.0, 0.5
+    _QUANTUM = 0.5
+
     def __init__(self, c: np.ndarray, cell_m: float):
         self.cell = cell_m
         self.origin = c.min(axis=0)
@@ -514,8 +519,8 @@ class _LikelihoodGrid:
         pad = np.pad(occ, 1)
         blur = sum(
             pad[1 + dx : 1 + dx + shape[0], 1 + dy : 1 + dy + shape[1]] * w
-            for dx, dy, w in [(0, 0, 1.0)]
-            + [(a, b, 0.5) for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+            for dx, dy, w in [(0, 0, self._CENTRE)]
+            + [(a, b, self._SIDE) for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1))]
         )
         self.grid = blur
 
@@ -549,16 +554,16 @@ class _LikelihoodGrid:
         # `full`, but u + s + r stays inside the window, so nothing wraps around.
         spec = fft.rfft2(window)[None] * np.conj(fft.rfft2(qocc, axes=(-2, -1)))
         corr = fft.irfft2(spec, full, axes=(-2, -1))[:, : 2 * r + 1, : 2 * r + 1]
-        # Scores are multiples of 0.5 (the blur's weights): rounded, ties are exact and go to
-        # the shift nearest the initial guess rather than to the FFT's rounding noise.
-        halves = np.rint(2.0 * corr)
+        # Scores are multiples of the blur's quantum: rounded to it, ties are exact and go to the
+        # shift nearest the initial guess rather than to the FFT's rounding noise.
+        steps = np.rint(corr / self._QUANTUM)
         sx = np.arange(-r, r + 1)
         dist2 = (sx[:, None] ** 2 + sx[None, :] ** 2).astype(np.float64)
         out = []
         for k in range(len(cells)):
-            best = halves[k] == halves[k].max()
+            best = steps[k] == steps[k].max()
             ij = np.unravel_index(int(np.argmin(np.where(best, dist2, np.inf))), best.shape)
             shift = np.array([sx[ij[0]], sx[ij[1]]], dtype=np.float64) * self.cell
             occupied = max(1.0, float(qocc[k].sum()))
-            out.append((shift, float(halves[k][ij]) / 2.0 / occupied))
+            out.append((shift, float(steps[k][ij]) * self._QUANTUM / occupied))
         return out
