@@ -16,8 +16,8 @@ point-to-line Hessian at the solution (Censi-style ``sigma^2 H^-1``): each sourc
 map points give a local line (PCA), the residual is the distance along its normal. A row of
 reflectors along one wall therefore leaves the motion along the wall unconstrained, which the
 fusion then takes from the Doppler prediction. The map mirror used for the refinement and these
-correspondences is a KD-tree of kiss-icp's map (~20k points) rebuilt every ``mirror_every`` map
-updates.
+correspondences is an exact nearest-neighbour grid of kiss-icp's map (~20k points,
+:class:`~radarslam.neighbors.GridIndex`) rebuilt every ``mirror_every`` map updates.
 """
 
 from __future__ import annotations
@@ -173,7 +173,7 @@ class ScanToMapRegistration:
             rot, t = pose[:2, :2], pose[:2, 3]
             pw = pb @ rot.T + t
             # Bounded query: much cheaper than plain k-NN where the map is sparse.
-            dist, idx = tree.query(pw, k=k, distance_upper_bound=max_dist)
+            dist, idx = tree.query(pw, k, max_dist)
             if self.refine_complete_neighborhoods:
                 ok = dist[:, -1] < max_dist  # sorted: the k-th is the farthest
                 if ok.sum() < 3:
@@ -216,15 +216,14 @@ class ScanToMapRegistration:
 
     def _mirror_tree(self):
         if self._mirror is None or self._mirror_age >= self.mirror_every:
-            from scipy.spatial import cKDTree
+            from radarslam.neighbors import GridIndex
 
             cloud = np.ascontiguousarray(self.map.point_cloud()[:, :2])
-            # Unbalanced, non-compact, larger leaves: less than half the build time of the default
-            # tree (rebuilt every few frames over ~20k points), the same exact nearest neighbours.
+            # The same neighbours as scipy's cKDTree, at a tenth of its build time and a fifth of
+            # its query time on these maps (GridIndex's doc).
             self._mirror = None
             if len(cloud):
-                tree = cKDTree(cloud, leafsize=32, balanced_tree=False, compact_nodes=False)
-                self._mirror = (tree, cloud)
+                self._mirror = (GridIndex(cloud, cell_m=self.voxel_size_m), cloud)
             self._mirror_age = 0
         return self._mirror
 
@@ -240,7 +239,8 @@ class ScanToMapRegistration:
         rot, t = pose[:2, :2], pose[:2, 3]
         p_body = source[:, :2]
         p_world = p_body @ rot.T + t
-        dist, idx = tree.query(p_world, k=k)
+        # Only points with a neighbour within max_dist count, so the search may give up on others.
+        dist, idx = tree.query(p_world, k, nearest_within=max_dist)
         ok = dist[:, 0] < max_dist
         m = int(ok.sum())
         if m < 3:

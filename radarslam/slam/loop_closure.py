@@ -130,27 +130,13 @@ def persistent_points(xy: np.ndarray, min_neighbors: int, radius_m: float) -> np
         return xy
     if len(xy) <= min_neighbors:
         return xy[:0]
-    from scipy.spatial import cKDTree
+    from radarslam.neighbors import GridIndex
 
-    need = min_neighbors + 1  # the point itself is counted below
-    # Square cells with a diagonal just under the radius: points sharing a cell are neighbours,
-    # so a cell holding ``need`` points keeps them all without a search (about half the points
-    # of a local map, the returns of solid reflectors).
-    cell = radius_m / math.sqrt(2.0) * (1.0 - 1e-9)
-    ij = np.floor(xy / cell).astype(np.int64)
-    ij -= ij.min(axis=0)
-    _, inverse, counts = np.unique(
-        ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_inverse=True, return_counts=True
-    )
-    keep = counts[inverse] >= need
-    rest = ~keep
-    if rest.any():
-        # The need-th nearest point, the point itself being the first: 3-4x faster than
-        # counting balls, and the same points.
-        tree = cKDTree(xy, leafsize=32, balanced_tree=False, compact_nodes=False)
-        bound = np.nextafter(radius_m, np.inf)  # the bound is exclusive; the radius counts
-        dist, _ = tree.query(xy[rest], k=need, distance_upper_bound=bound)
-        keep[rest] = dist[:, -1] <= radius_m
+    need = min_neighbors + 1  # the point itself is counted
+    # A compiled grid count, the same points as a k-d tree's need-th neighbour query at a third
+    # of its time on a local map (~9,000 points over 250 m). Cells of twice the radius: finer
+    # ones cost more to build (one counter per cell) than they save in distance tests.
+    keep = GridIndex(xy, cell_m=2.0 * radius_m).count_within(xy, radius_m, need) >= need
     return xy[keep]
 
 
