@@ -165,8 +165,11 @@ class ScanToMapRegistration:
         if mirror is None or len(mirror[1]) < k or len(source) < 3:
             return pose
         tree, cloud = mirror
-        pb = source[:, :2]
-        px, py = -pb[:, 1], pb[:, 0]
+        from radarslam.odometry.registration_kernels import kernel
+
+        sums = kernel("refine_sums")
+        pb = np.ascontiguousarray(source[:, :2])
+        complete = bool(self.refine_complete_neighborhoods)
         s2 = sigma**2
         previous = None
         for _ in range(self.refine_iterations):
@@ -174,29 +177,14 @@ class ScanToMapRegistration:
             pw = pb @ rot.T + t
             # Bounded query: much cheaper than plain k-NN where the map is sparse.
             dist, idx = tree.query(pw, k, max_dist)
-            if self.refine_complete_neighborhoods:
-                ok = dist[:, -1] < max_dist  # sorted: the k-th is the farthest
-                if ok.sum() < 3:
-                    return pose
-                mean = cloud[idx[ok]].mean(axis=1)
-            else:
-                valid = dist < max_dist
-                cnt = valid.sum(axis=1)
-                ok = cnt > 0
-                if ok.sum() < 3:
-                    return pose
-                valid, cnt = valid[ok], cnt[ok]
-                nb = cloud[np.where(valid, idx[ok], 0)]  # missing neighbours: index len(cloud)
-                mean = np.einsum("mk,mki->mi", valid, nb) / cnt[:, None]
-            r = pw[ok] - mean
-            rb = r @ rot  # body frame, R^T r
-            w = (s2 / (s2 + np.einsum("mi,mi->m", r, r))) ** 2
-            qx, qy = px[ok], py[ok]
+            used, sw, hxt, hyt, htt, gx, gy, gt = sums(
+                pb, pw, dist, idx, cloud, max_dist, complete, s2, np.ascontiguousarray(rot)
+            )
+            if used < 3:
+                return pose
             # J = R [I, perp(p)]: J^T J = [[I, perp], [perp^T, |p|^2]], J^T r = [rb, perp . rb].
-            sw = w.sum()
-            hxt, hyt = w @ qx, w @ qy
-            hess = np.array([[sw, 0.0, hxt], [0.0, sw, hyt], [hxt, hyt, w @ (qx * qx + qy * qy)]])
-            grad = np.array([w @ rb[:, 0], w @ rb[:, 1], w @ (qx * rb[:, 0] + qy * rb[:, 1])])
+            hess = np.array([[sw, 0.0, hxt], [0.0, sw, hyt], [hxt, hyt, htt]])
+            grad = np.array([gx, gy, gt])
             delta = -np.linalg.solve(hess + np.eye(3) * 1e-9, grad)
             scale = 1.0
             if previous is not None and self.refine_max_extrapolation > 1.0:
@@ -236,54 +224,21 @@ class ScanToMapRegistration:
         if mirror is None or len(mirror[1]) < k or len(source) < 3:
             return huge, 0, float("nan")
         tree, cloud = mirror
+        from radarslam.odometry.registration_kernels import kernel
+
         rot, t = pose[:2, :2], pose[:2, 3]
-        p_body = source[:, :2]
+        p_body = np.ascontiguousarray(source[:, :2])
         p_world = p_body @ rot.T + t
         # Only points with a neighbour within max_dist count, so the search may give up on others.
         dist, idx = tree.query(p_world, k, nearest_within=max_dist)
-        ok = dist[:, 0] < max_dist
-        m = int(ok.sum())
+        # Per point: the local line of its k nearest map points (PCA of their scatter in closed
+        # form) and the point-to-line row n^T R [I, perp(p)], or point-to-point rows where the
+        # neighbours form a compact blob, which constrains both directions.
+        m, hess, sq, n_res = kernel("covariance_sums")(
+            p_body, p_world, dist, idx, cloud, max_dist, np.ascontiguousarray(rot)
+        )
         if m < 3:
             return huge, m, float("nan")
-        nb = cloud[idx[ok]]  # (m, k, 2)
-        centred = nb - nb.mean(axis=1, keepdims=True)
-        # Scatter [[sxx, sxy], [sxy, syy]] and its eigen-decomposition in closed form (stacked
-        # 2x2 eigh through np.linalg costs more than the rest of this function).
-        cx, cy = centred[:, :, 0], centred[:, :, 1]
-        sxx = np.einsum("mk,mk->m", cx, cx)
-        syy = np.einsum("mk,mk->m", cy, cy)
-        sxy = np.einsum("mk,mk->m", cx, cy)
-        half_tr = 0.5 * (sxx + syy)
-        rad = np.hypot(0.5 * (sxx - syy), sxy)
-        small, large = half_tr - rad, half_tr + rad
-        # Major axis at angle 0.5 atan2(2 sxy, sxx - syy); the normal (smallest spread) is
-        # perpendicular to it (sign irrelevant: residual and Jacobian flip together).
-        ang = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-        nx, ny = -np.sin(ang), np.cos(ang)  # world frame
-        # A compact blob (no line) constrains both directions: point-to-point for those.
-        linear = large > 4.0 * np.maximum(small, 1e-12)
-        pw, pb = p_world[ok], p_body[ok]
-        d = pw - nb[:, 0]
-        px, py = -pb[:, 1], pb[:, 0]  # perp(p): d/d(theta) of R (p + th perp(p))
-        # Point-to-line row: n^T R [I, perp(p)] = [R^T n, (R^T n) . perp(p)].
-        nbx = nx * rot[0, 0] + ny * rot[1, 0]
-        nby = nx * rot[0, 1] + ny * rot[1, 1]
-        lx, ly = nbx[linear], nby[linear]
-        lth = lx * px[linear] + ly * py[linear]
-        r_line = nx[linear] * d[linear, 0] + ny[linear] * d[linear, 1]
-        # Point-to-point rows R [I, perp(p)]: their J^T J is [[I, perp], [perp^T, |p|^2]].
-        pt = ~linear
-        qx, qy = px[pt], py[pt]
-        n_pt = float(pt.sum())
-        hxx = lx @ lx + n_pt
-        hyy = ly @ ly + n_pt
-        hxy = lx @ ly
-        hxt = lx @ lth + qx.sum()
-        hyt = ly @ lth + qy.sum()
-        htt = lth @ lth + qx @ qx + qy @ qy
-        hess = np.array([[hxx, hxy, hxt], [hxy, hyy, hyt], [hxt, hyt, htt]])
-        sq = float(r_line @ r_line) + float(np.sum(d[pt] ** 2))
-        n_res = len(r_line) + 2 * int(n_pt)
         mse = sq / n_res
         # Residual variance, floored at the sensor's point noise: correlated correspondences would
         # otherwise make a handful of lucky matches look arbitrarily precise.
