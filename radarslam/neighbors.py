@@ -9,6 +9,9 @@ kernel widths, about 2 m), so a grid of 1 m cells sorted once by cell (a countin
 in the points) answers the same queries exactly: the same neighbours, the same order, the same
 squared distances summed in the same order as ``cKDTree`` (``p = 2``, ``eps = 0``).
 
+The loop verifier's ICP runs on the same grid (:meth:`GridIndex.icp_point_to_point`, open3d's
+point-to-point iterations).
+
 The output follows ``cKDTree.query``: ``(dist, idx)`` of shape ``(m, k)``, sorted by distance,
 ``inf`` and ``len(points)`` where fewer than ``k`` neighbours exist (within the bound).
 """
@@ -25,209 +28,11 @@ from radarslam.errors import ConfigError
 _MAX_CELLS = 4_000_000
 
 
-def _njit(fn):
-    # numba is imported on first use only: `radarslam --help` and the readers stay fast to load.
-    import numba
-
-    return numba.njit(cache=True, nogil=True)(fn)
-
-
-def _bounds_impl(xy):
-    # numpy's min/max over axis 0 of an (n, 2) array walk it with a stride: 7x slower than this
-    x0 = y0 = np.inf
-    x1 = y1 = -np.inf
-    for p in range(xy.shape[0]):
-        x = xy[p, 0]
-        y = xy[p, 1]
-        if not (math.isfinite(x) and math.isfinite(y)):
-            return np.nan, np.nan, np.nan, np.nan
-        x0 = min(x0, x)
-        x1 = max(x1, x)
-        y0 = min(y0, y)
-        y1 = max(y1, y)
-    return x0, y0, x1, y1
-
-
-def _build_impl(xy, x0, y0, inv_cell, nx, ny):
-    n = xy.shape[0]
-    cell_of = np.empty(n, dtype=np.int64)
-    starts = np.zeros(nx * ny + 1, dtype=np.int64)
-    for p in range(n):
-        i = math.floor((xy[p, 0] - x0) * inv_cell)
-        j = math.floor((xy[p, 1] - y0) * inv_cell)
-        i = min(max(i, 0), nx - 1)  # rounding at the far edge of the bounding box
-        j = min(max(j, 0), ny - 1)
-        c = j * nx + i
-        cell_of[p] = c
-        starts[c + 1] += 1
-    for c in range(nx * ny):
-        starts[c + 1] += starts[c]
-    fill = starts[:-1].copy()
-    order = np.empty(n, dtype=np.int64)
-    for p in range(n):  # stable: points of a cell keep their input order
-        c = cell_of[p]
-        order[fill[c]] = p
-        fill[c] += 1
-    sx = np.empty(n)
-    sy = np.empty(n)
-    for q in range(n):
-        sx[q] = xy[order[q], 0]
-        sy[q] = xy[order[q], 1]
-    return order, starts, sx, sy
-
-
-def _query_impl(
-    sx, sy, order, starts, x0, y0, cell, nx, ny, queries, k, bound, need_first_within, n_points
-):
-    """k nearest per query with squared distance < bound^2 (bound may be inf).
-
-    need_first_within > 0: an unbounded search that gives up (all inf) once it is sure that the
-    nearest neighbour lies at or beyond that distance (the caller drops such queries)."""
-    m = queries.shape[0]
-    dist = np.full((m, k), np.inf)
-    idx = np.full((m, k), n_points, dtype=np.int64)
-    bound2 = bound * bound
-    first2 = need_first_within * need_first_within
-    inv_cell = 1.0 / cell
-    bd = np.empty(k)
-    bi = np.empty(k, dtype=np.int64)
-    max_ring = max(nx, ny) + 1
-    for q in range(m):
-        qx = queries[q, 0]
-        qy = queries[q, 1]
-        if not (math.isfinite(qx) and math.isfinite(qy)):
-            continue
-        fi = math.floor((qx - x0) * inv_cell)
-        fj = math.floor((qy - y0) * inv_cell)
-        # A query far outside the grid: every cell is farther than any ring count we could walk,
-        # so start the rings at the grid's nearest cell instead (distances stay exact).
-        ci = int(min(max(fi, -1.0), float(nx)))
-        cj = int(min(max(fj, -1.0), float(ny)))
-        for t in range(k):
-            bd[t] = np.inf
-            bi[t] = n_points
-        found = 0
-        ring = 0
-        while ring <= max_ring + abs(ci) + abs(cj):
-            # Cells of Chebyshev ring `ring` around (ci, cj); each is checked against the current
-            # k-th distance (or the bound) by its exact box distance, so the walk stays exact.
-            limit2 = bound2
-            if found == k and bd[k - 1] < limit2:
-                limit2 = bd[k - 1]
-            i_lo = ci - ring
-            i_hi = ci + ring
-            j_lo = cj - ring
-            j_hi = cj + ring
-            for j in range(max(j_lo, 0), min(j_hi, ny - 1) + 1):
-                on_edge_row = j == j_lo or j == j_hi
-                if on_edge_row:
-                    i_start = max(i_lo, 0)
-                    i_step = 1
-                else:
-                    i_start = i_lo
-                    i_step = i_hi - i_lo if ring > 0 else 1
-                i = i_start
-                while i <= min(i_hi, nx - 1):
-                    if i >= 0:
-                        # squared distance from the query to the cell's box
-                        bx0 = x0 + i * cell
-                        by0 = y0 + j * cell
-                        dx = 0.0
-                        if qx < bx0:
-                            dx = bx0 - qx
-                        elif qx > bx0 + cell:
-                            dx = qx - bx0 - cell
-                        dy = 0.0
-                        if qy < by0:
-                            dy = by0 - qy
-                        elif qy > by0 + cell:
-                            dy = qy - by0 - cell
-                        box2 = dx * dx + dy * dy
-                        if box2 < limit2:
-                            c = j * nx + i
-                            for s in range(starts[c], starts[c + 1]):
-                                ex = qx - sx[s]
-                                ey = qy - sy[s]
-                                d2 = ex * ex + ey * ey
-                                if d2 < bound2 and (found < k or d2 < bd[k - 1]):
-                                    p = order[s]
-                                    # insert, keeping ties in index order (as cKDTree's heap)
-                                    t = found if found < k else k - 1
-                                    while t > 0 and (
-                                        bd[t - 1] > d2 or (bd[t - 1] == d2 and bi[t - 1] > p)
-                                    ):
-                                        if t < k:
-                                            bd[t] = bd[t - 1]
-                                            bi[t] = bi[t - 1]
-                                        t -= 1
-                                    bd[t] = d2
-                                    bi[t] = p
-                                    if found < k:
-                                        found += 1
-                                    if found == k and bd[k - 1] < limit2:
-                                        limit2 = bd[k - 1]
-                    i += i_step
-            # The next ring lies at least `ring` cells away from the query's own cell.
-            reach = ring * cell
-            if need_first_within > 0.0 and reach * reach >= first2:
-                if found == 0 or bd[0] >= first2:
-                    found = 0
-                    break
-            if reach * reach >= limit2:
-                break
-            ring += 1
-        for t in range(found):
-            dist[q, t] = math.sqrt(bd[t])
-            idx[q, t] = bi[t]
-    return dist, idx
-
-
-def _count_impl(sx, sy, starts, x0, y0, cell, nx, ny, queries, radius, stop_at):
-    """Points within ``radius`` (distance <= radius, as cKDTree's distances compare), counted up
-    to ``stop_at``."""
-    m = queries.shape[0]
-    counts = np.zeros(m, dtype=np.int64)
-    reach = math.ceil(radius / cell)
-    inv_cell = 1.0 / cell
-    for q in range(m):
-        qx = queries[q, 0]
-        qy = queries[q, 1]
-        if not (math.isfinite(qx) and math.isfinite(qy)):
-            continue
-        ci = math.floor((qx - x0) * inv_cell)
-        cj = math.floor((qy - y0) * inv_cell)
-        n = 0
-        for j in range(max(cj - reach, 0), min(cj + reach, ny - 1) + 1):
-            if n >= stop_at:
-                break
-            for i in range(max(ci - reach, 0), min(ci + reach, nx - 1) + 1):
-                c = j * nx + i
-                for s in range(starts[c], starts[c + 1]):
-                    ex = qx - sx[s]
-                    ey = qy - sy[s]
-                    d2 = ex * ex + ey * ey
-                    if math.sqrt(d2) <= radius:
-                        n += 1
-                if n >= stop_at:
-                    break
-        counts[q] = min(n, stop_at)
-    return counts
-
-
-_kernels: dict[str, object] = {}
-
-
 def _kernel(name: str):
-    fn = _kernels.get(name)
-    if fn is None:
-        impl = {
-            "bounds": _bounds_impl,
-            "build": _build_impl,
-            "query": _query_impl,
-            "count": _count_impl,
-        }[name]
-        fn = _kernels[name] = _njit(impl)
-    return fn
+    # numba is imported on first use only: `radarslam --help` and the readers stay fast to load.
+    from radarslam import grid_kernels
+
+    return getattr(grid_kernels, name)
 
 
 class GridIndex:
@@ -322,3 +127,45 @@ class GridIndex:
             radius,
             int(stop_at),
         )
+
+    def icp_point_to_point(
+        self,
+        source_xy: np.ndarray,
+        init: np.ndarray,
+        max_correspondence_m: float,
+        relative_fitness: float,
+        relative_rmse: float,
+        max_iterations: int,
+    ) -> np.ndarray:
+        """Planar point-to-point ICP of ``source_xy`` onto the indexed points from ``init`` (4x4,
+        its planar part used), the iterations of open3d's ``registration_icp`` with
+        ``TransformationEstimationPointToPoint`` and the same convergence test; returns the 4x4
+        ``target_from_source``. One thread, no copies into open3d's clouds and trees."""
+        src = np.ascontiguousarray(source_xy, dtype=np.float64)
+        if src.ndim != 2 or src.shape[1] != 2:
+            raise ValueError(f"GridIndex.icp_point_to_point expects (n, 2) points, got {src.shape}")
+        pose = np.asarray(init, dtype=np.float64)
+        planar = np.array([[*pose[0, :2], pose[0, 3]], [*pose[1, :2], pose[1, 3]], [0.0, 0.0, 1.0]])
+        out = np.eye(4)
+        if self.n == 0 or len(src) == 0:
+            out[:2, :2], out[:2, 3] = planar[:2, :2], planar[:2, 2]
+            return out
+        t = _kernel("icp_point_to_point")(
+            src,
+            self.sx,
+            self.sy,
+            self.order,
+            self.starts,
+            self.x0,
+            self.y0,
+            self.cell_m,
+            self.nx,
+            self.ny,
+            planar,
+            float(max_correspondence_m),
+            float(relative_fitness),
+            float(relative_rmse),
+            int(max_iterations),
+        )
+        out[:2, :2], out[:2, 3] = t[:2, :2], t[:2, 2]
+        return out

@@ -3,6 +3,7 @@ import pytest
 
 from radarslam.errors import DataError
 from radarslam.geometry import invert, matrix_to_se2, se2_to_matrix
+from radarslam.neighbors import GridIndex
 from radarslam.slam.loop_closure import LoopVerifier, LoopVerifierConfig, persistent_points
 from radarslam.slam.records import NodeKey
 from radarslam.slam.synthetic_graph import observe_place, random_place
@@ -94,6 +95,35 @@ def test_heading_window_tries_only_headings_near_the_hint(q_yaw_deg, found):
     res = v.verify(query, cand, se2_to_matrix(0.0, 0.0, np.pi))
     assert (res.accepted and _pose_error(res.candidate_from_query, true)[0] < 0.15) == found
     assert LoopVerifier().verify(query, cand).accepted  # all round, every case is found
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_grid_icp_is_open3d_icp(seed):
+    """The default backend replays open3d's point-to-point iterations: the same poses to 1e-9."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-60.0, 60.0, (250, 2))
+    cand = centres[rng.integers(0, 250, 2500)] + rng.normal(0.0, 0.3, (2500, 2))
+    yaw = rng.normal(0.0, 0.1)
+    rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    query = (cand[rng.integers(0, 2500, 1200)] + rng.normal(0.0, 0.3, (1200, 2))) @ rot
+    query = np.vstack([query - rng.normal(0.0, 1.5, 2), rng.uniform(-60.0, 60.0, (200, 2))])
+    open3d = LoopVerifier(LoopVerifierConfig(backend="open3d"))
+    grid = LoopVerifier(LoopVerifierConfig(backend="grid"))
+    index = GridIndex(cand)
+    for max_corr in (3.0, 1.0, 0.2):
+        ref = open3d._icp_open3d(query, cand, np.eye(4), max_corr)
+        got = index.icp_point_to_point(query, np.eye(4), max_corr, 1e-4, 1e-4, 30)
+        np.testing.assert_allclose(got[:2, [0, 1, 3]], ref[:2, [0, 1, 3]], atol=1e-9)
+    # both stages, as verification runs them
+    np.testing.assert_allclose(
+        grid._icp(query, cand, np.eye(4)), open3d._icp(query, cand, np.eye(4)), atol=1e-9
+    )
+    # the whole verification: the same decision, pose and scores
+    query, cand, true = _revisit(5, se2_to_matrix(-2.0, 3.0, np.deg2rad(178.0)))
+    va, vb = open3d.verify(query, cand), grid.verify(query, cand)
+    assert va.accepted and vb.accepted and _pose_error(vb.candidate_from_query, true)[0] < 0.15
+    np.testing.assert_allclose(vb.candidate_from_query, va.candidate_from_query, atol=1e-9)
+    assert abs(va.fitness - vb.fitness) < 1e-12 and abs(va.tight_fitness - vb.tight_fitness) < 1e-12
 
 
 def test_small_gicp_backend_agrees():
