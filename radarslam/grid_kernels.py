@@ -197,40 +197,57 @@ def count(sx, sy, starts, x0, y0, cell, nx, ny, queries, radius, stop_at):
 
 
 @numba.njit(cache=True, nogil=True)
+def _scan_cell(sx, sy, order, starts, c, qx, qy, max_d2, best, best_slot):
+    for s in range(starts[c], starts[c + 1]):
+        ex = qx - sx[s]
+        ey = qy - sy[s]
+        d2 = ex * ex + ey * ey
+        if d2 < max_d2 and (
+            d2 < best or (d2 == best and best_slot >= 0 and order[s] < order[best_slot])
+        ):
+            best = d2
+            best_slot = s
+    return best, best_slot
+
+
+@numba.njit(cache=True, nogil=True)
 def _nearest_within(sx, sy, order, starts, x0, y0, cell, nx, ny, qx, qy, max_d2, reach):
     """(squared distance, slot in the sorted arrays) of the nearest point closer than
-    sqrt(max_d2), ties to the lower input index; (inf, -1) when there is none."""
+    sqrt(max_d2), ties to the lower input index; (inf, -1) when there is none. Rings of cells
+    from the query's own outwards, so that a near point found early prunes the outer rings."""
     best = np.inf
     best_slot = -1
     ci = math.floor((qx - x0) / cell)
     cj = math.floor((qy - y0) / cell)
-    for j in range(max(cj - reach, 0), min(cj + reach, ny - 1) + 1):
-        by0 = y0 + j * cell
-        dy = 0.0
-        if qy < by0:
-            dy = by0 - qy
-        elif qy > by0 + cell:
-            dy = qy - by0 - cell
-        for i in range(max(ci - reach, 0), min(ci + reach, nx - 1) + 1):
-            bx0 = x0 + i * cell
-            dx = 0.0
-            if qx < bx0:
-                dx = bx0 - qx
-            elif qx > bx0 + cell:
-                dx = qx - bx0 - cell
-            limit = min(best, max_d2)
-            if dx * dx + dy * dy >= limit:
-                continue
-            c = j * nx + i
-            for s in range(starts[c], starts[c + 1]):
-                ex = qx - sx[s]
-                ey = qy - sy[s]
-                d2 = ex * ex + ey * ey
-                if d2 < max_d2 and (
-                    d2 < best or (d2 == best and best_slot >= 0 and order[s] < order[best_slot])
-                ):
-                    best = d2
-                    best_slot = s
+    for ring in range(reach + 1):
+        # every cell of this ring is at least (ring - 1) cells from the query
+        if ring > 1:
+            gap = (ring - 1) * cell
+            if gap * gap >= min(best, max_d2):
+                break
+        for j in range(max(cj - ring, 0), min(cj + ring, ny - 1) + 1):
+            edge_row = j == cj - ring or j == cj + ring
+            by0 = y0 + j * cell
+            dy = 0.0
+            if qy < by0:
+                dy = by0 - qy
+            elif qy > by0 + cell:
+                dy = qy - by0 - cell
+            i = ci - ring
+            while i <= ci + ring:
+                if 0 <= i < nx:
+                    bx0 = x0 + i * cell
+                    dx = 0.0
+                    if qx < bx0:
+                        dx = bx0 - qx
+                    elif qx > bx0 + cell:
+                        dx = qx - bx0 - cell
+                    if dx * dx + dy * dy < min(best, max_d2):
+                        best, best_slot = _scan_cell(
+                            sx, sy, order, starts, j * nx + i, qx, qy, max_d2, best, best_slot
+                        )
+                # inner rows of the ring: only its two side cells
+                i += 1 if (edge_row or ring == 0) else 2 * ring
     return best, best_slot
 
 

@@ -262,7 +262,13 @@ class LoopVerifier:
         # One k-nearest query at the chosen pose serves the tight fitness, the information
         # matrix (nearest neighbours) and the degeneracy test (local line normals).
         moved = _transform(q, pose)
-        dist, idx = tree.query(moved, min(cfg.normal_neighbors, len(c)))
+        # Only points with a neighbour within max_correspondence_m enter any of these, so the
+        # search may give up on the others (an unbounded search walks far for them).
+        dist, idx = tree.query(
+            moved,
+            min(cfg.normal_neighbors, len(c)),
+            nearest_within=np.nextafter(cfg.max_correspondence_m, np.inf),
+        )
         tight = float(np.mean(dist[:, 0] <= cfg.tight_correspondence_m))
         inlier = dist[:, 0] <= cfg.max_correspondence_m
         info = self._information(moved[inlier], pose, rmse)
