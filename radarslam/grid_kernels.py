@@ -57,6 +57,16 @@ def build(xy, x0, y0, inv_cell, nx, ny):
 
 
 @numba.njit(cache=True, nogil=True)
+def _gap(q, lo, cell):
+    """Distance from q to the interval [lo, lo + cell] (0 inside)."""
+    if q < lo:
+        return lo - q
+    if q > lo + cell:
+        return q - lo - cell
+    return 0.0
+
+
+@numba.njit(cache=True, nogil=True)
 def query(
     sx, sy, order, starts, x0, y0, cell, nx, ny, queries, k, bound, need_first_within, n_points
 ):
@@ -111,18 +121,8 @@ def query(
                 while i <= min(i_hi, nx - 1):
                     if i >= 0:
                         # squared distance from the query to the cell's box
-                        bx0 = x0 + i * cell
-                        by0 = y0 + j * cell
-                        dx = 0.0
-                        if qx < bx0:
-                            dx = bx0 - qx
-                        elif qx > bx0 + cell:
-                            dx = qx - bx0 - cell
-                        dy = 0.0
-                        if qy < by0:
-                            dy = by0 - qy
-                        elif qy > by0 + cell:
-                            dy = qy - by0 - cell
+                        dx = _gap(qx, x0 + i * cell, cell)
+                        dy = _gap(qy, y0 + j * cell, cell)
                         box2 = dx * dx + dy * dy
                         if box2 < limit2:
                             c = j * nx + i
@@ -164,7 +164,7 @@ def query(
 
 
 @numba.njit(cache=True, nogil=True)
-def count(sx, sy, starts, x0, y0, cell, nx, ny, queries, radius, stop_at):
+def count(sx, sy, order, starts, x0, y0, cell, nx, ny, queries, radius, stop_at):
     """Points within ``radius`` (distance <= radius, as cKDTree's distances compare), counted up
     to ``stop_at``."""
     m = queries.shape[0]
@@ -227,21 +227,11 @@ def _nearest_within(sx, sy, order, starts, x0, y0, cell, nx, ny, qx, qy, max_d2,
                 break
         for j in range(max(cj - ring, 0), min(cj + ring, ny - 1) + 1):
             edge_row = j == cj - ring or j == cj + ring
-            by0 = y0 + j * cell
-            dy = 0.0
-            if qy < by0:
-                dy = by0 - qy
-            elif qy > by0 + cell:
-                dy = qy - by0 - cell
+            dy = _gap(qy, y0 + j * cell, cell)
             i = ci - ring
             while i <= ci + ring:
                 if 0 <= i < nx:
-                    bx0 = x0 + i * cell
-                    dx = 0.0
-                    if qx < bx0:
-                        dx = bx0 - qx
-                    elif qx > bx0 + cell:
-                        dx = qx - bx0 - cell
+                    dx = _gap(qx, x0 + i * cell, cell)
                     if dx * dx + dy * dy < min(best, max_d2):
                         best, best_slot = _scan_cell(
                             sx, sy, order, starts, j * nx + i, qx, qy, max_d2, best, best_slot

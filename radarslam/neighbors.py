@@ -59,6 +59,8 @@ class GridIndex:
             cell *= 2.0
         self.cell_m, self.x0, self.y0, self.nx, self.ny = cell, x0, y0, nx, ny
         self.order, self.starts, self.sx, self.sy = _kernel("build")(xy, x0, y0, 1.0 / cell, nx, ny)
+        # The arguments every kernel takes first, in this order.
+        self._grid = (self.sx, self.sy, self.order, self.starts, x0, y0, cell, nx, ny)
 
     def __len__(self) -> int:
         return self.n
@@ -85,15 +87,7 @@ class GridIndex:
         if self.n == 0:
             return np.full((len(q), int(k)), np.inf), np.full((len(q), int(k)), 0, dtype=np.int64)
         return _kernel("query")(
-            self.sx,
-            self.sy,
-            self.order,
-            self.starts,
-            self.x0,
-            self.y0,
-            self.cell_m,
-            self.nx,
-            self.ny,
+            *self._grid,
             q,
             int(k),
             bound,
@@ -114,19 +108,7 @@ class GridIndex:
             )
         if self.n == 0 or int(stop_at) < 1:
             return np.zeros(len(q), dtype=np.int64)
-        return _kernel("count")(
-            self.sx,
-            self.sy,
-            self.starts,
-            self.x0,
-            self.y0,
-            self.cell_m,
-            self.nx,
-            self.ny,
-            q,
-            radius,
-            int(stop_at),
-        )
+        return _kernel("count")(*self._grid, q, radius, int(stop_at))
 
     def icp_point_to_point(
         self,
@@ -152,15 +134,7 @@ class GridIndex:
             return out
         t = _kernel("icp_point_to_point")(
             src,
-            self.sx,
-            self.sy,
-            self.order,
-            self.starts,
-            self.x0,
-            self.y0,
-            self.cell_m,
-            self.nx,
-            self.ny,
+            *self._grid,
             planar,
             float(max_correspondence_m),
             float(relative_fitness),
