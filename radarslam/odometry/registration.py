@@ -165,9 +165,8 @@ class ScanToMapRegistration:
         if mirror is None or len(mirror[1]) < k or len(source) < 3:
             return pose
         tree, cloud = mirror
-        from radarslam.odometry.registration_kernels import kernel
+        from radarslam.odometry.registration_kernels import refine_sums
 
-        sums = kernel("refine_sums")
         pb = np.ascontiguousarray(source[:, :2])
         complete = bool(self.refine_complete_neighborhoods)
         s2 = sigma**2
@@ -177,7 +176,7 @@ class ScanToMapRegistration:
             pw = pb @ rot.T + t
             # Bounded query: much cheaper than plain k-NN where the map is sparse.
             dist, idx = tree.query(pw, k, max_dist)
-            used, sw, hxt, hyt, htt, gx, gy, gt = sums(
+            used, sw, hxt, hyt, htt, gx, gy, gt = refine_sums(
                 pb, pw, dist, idx, cloud, max_dist, complete, s2, np.ascontiguousarray(rot)
             )
             if used < 3:
@@ -224,7 +223,7 @@ class ScanToMapRegistration:
         if mirror is None or len(mirror[1]) < k or len(source) < 3:
             return huge, 0, float("nan")
         tree, cloud = mirror
-        from radarslam.odometry.registration_kernels import kernel
+        from radarslam.odometry.registration_kernels import covariance_sums
 
         rot, t = pose[:2, :2], pose[:2, 3]
         p_body = np.ascontiguousarray(source[:, :2])
@@ -234,7 +233,7 @@ class ScanToMapRegistration:
         # Per point: the local line of its k nearest map points (PCA of their scatter in closed
         # form) and the point-to-line row n^T R [I, perp(p)], or point-to-point rows where the
         # neighbours form a compact blob, which constrains both directions.
-        m, hess, sq, n_res = kernel("covariance_sums")(
+        m, hess, sq, n_res = covariance_sums(
             p_body, p_world, dist, idx, cloud, max_dist, np.ascontiguousarray(rot)
         )
         if m < 3:

@@ -4,16 +4,19 @@ Both run a few hundred points through a dozen small numpy operations four times 
 numpy's per-call overhead, not the arithmetic, made up most of their time. Each kernel returns
 the sums that :mod:`.registration` turns into a Gauss-Newton step or a covariance, so the maths
 stays readable there; the sums are the same up to the order of floating-point additions.
+
+Like :mod:`radarslam.grid_kernels`, imported only by its callers, so that loading the package
+does not load numba.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
-_kernels: dict[str, object] = {}
 
-
-def _refine_sums_impl(pb, pw, dist, idx, cloud, max_dist, complete, s2, rot):
+@numba.njit(cache=True, nogil=True)
+def refine_sums(pb, pw, dist, idx, cloud, max_dist, complete, s2, rot):
     """Geman-McClure-weighted normal equations of point-to-local-mean residuals.
 
     Returns (used points, sw, hxt, hyt, htt, gx, gy, gt): H = [[sw, 0, hxt], [0, sw, hyt],
@@ -59,7 +62,8 @@ def _refine_sums_impl(pb, pw, dist, idx, cloud, max_dist, complete, s2, rot):
     return used, sw, hxt, hyt, htt, gx, gy, gt
 
 
-def _covariance_sums_impl(pb, pw, dist, idx, cloud, max_dist, rot):
+@numba.njit(cache=True, nogil=True)
+def covariance_sums(pb, pw, dist, idx, cloud, max_dist, rot):
     """Point-to-line (or point-to-point, for compact neighbourhoods) Hessian at the solution.
 
     Returns (matched points, H as a (3, 3) array, squared residual sum, residual count)."""
@@ -123,15 +127,3 @@ def _covariance_sums_impl(pb, pw, dist, idx, cloud, max_dist, rot):
     hess[2, 0] = hess[0, 2]
     hess[2, 1] = hess[1, 2]
     return matched, hess, sq, n_res
-
-
-def kernel(name: str):
-    """The compiled kernel ``refine_sums`` or ``covariance_sums`` (numba imported on first use,
-    so that loading the package stays fast)."""
-    fn = _kernels.get(name)
-    if fn is None:
-        import numba
-
-        impl = {"refine_sums": _refine_sums_impl, "covariance_sums": _covariance_sums_impl}[name]
-        fn = _kernels[name] = numba.njit(cache=True, nogil=True)(impl)
-    return fn

@@ -3,7 +3,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from radarslam.odometry.lie import exp_se2
-from radarslam.odometry.registration_kernels import kernel
+from radarslam.odometry.registration_kernels import covariance_sums, refine_sums
 
 
 def _scene(seed):
@@ -32,7 +32,7 @@ def test_refine_sums_match_the_numpy_formulas(complete):
     qx, qy = -pb[ok, 1], pb[ok, 0]
     expected = [w.sum(), w @ qx, w @ qy, w @ (qx**2 + qy**2)]
     expected += [w @ rb[:, 0], w @ rb[:, 1], w @ (qx * rb[:, 0] + qy * rb[:, 1])]
-    used, *sums = kernel("refine_sums")(pb, pw, dist, idx, cloud, max_dist, complete, s2, rot)
+    used, *sums = refine_sums(pb, pw, dist, idx, cloud, max_dist, complete, s2, rot)
     assert used == ok.sum() and 20 < used < len(pb)  # partial neighbourhoods were exercised
     np.testing.assert_allclose(sums, expected, rtol=1e-12, atol=1e-9)
 
@@ -46,7 +46,7 @@ def test_covariance_sums_split_lines_from_blobs():
     pb = np.vstack([pb, (wall[::20] + np.array([0.0, 0.1]) - t) @ rot])
     pw = pb @ rot.T + t
     dist, idx = cKDTree(cloud).query(pw, k=5)
-    matched, hess, sq, n_res = kernel("covariance_sums")(pb, pw, dist, idx, cloud, 2.1, rot)
+    matched, hess, sq, n_res = covariance_sums(pb, pw, dist, idx, cloud, 2.1, rot)
     assert matched == int((dist[:, 0] < 2.1).sum())
     assert matched < n_res < 2 * matched  # some point-to-line rows, some point-to-point pairs
     np.testing.assert_array_equal(hess, hess.T)
