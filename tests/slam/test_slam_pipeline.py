@@ -607,6 +607,34 @@ def test_a_dead_reading_or_odometry_process_is_a_clear_error(reader, scenes):
         pipeline.run(scenes)
 
 
+def test_reading_and_odometry_processes_yield_to_the_key_frame_side(reader, scenes):
+    import os
+
+    from radarslam.slam.pipeline import _HELPER_NICENESS
+
+    # each process reports its niceness in an error, the one thing that comes back from it
+    ours = os.nice(0)
+    expected = min(ours + _HELPER_NICENESS, 19)
+    cfg = SlamConfig(pipelined=True)
+    cfg.loops.enabled = False
+
+    def report():
+        raise DataError(f"niceness {os.nice(0)}")
+
+    with pytest.raises(DataError, match=rf"^niceness {expected}$"):
+        SlamPipeline(_ReaderThatFails(reader, report), cfg, progress=False).run(scenes)
+
+    pipeline = SlamPipeline(reader, cfg, progress=False)
+
+    def process(frame):
+        report()
+
+    pipeline.odometry.process = process
+    with pytest.raises(DataError, match=rf"^niceness {expected}$"):
+        pipeline.run(scenes)
+    assert os.nice(0) == ours  # the calling process keeps its priority
+
+
 def test_proximity_search_within_one_session_skips_its_recent_past(reader, scenes):
     # A session revisiting its own past: proximity candidates come from the same session too,
     # but never from its last exclude_recent_s seconds.
