@@ -435,3 +435,34 @@ def drift(
         num_segments=int(t_all.size),
         per_length=per_length,
     )
+
+
+# --- consistency of reported covariances ---------------------------------------------------------
+
+
+def relative_motion_nees(est_motions, covariances, ref_motions) -> np.ndarray:
+    """Normalised estimation error squared of relative motions (4x4 ``prev_from_this``, planar)
+    against the reference motions, with their (3, 3) covariances in Pose2 tangent order
+    (x, y, yaw; body frame of the later pose). An honest covariance gives a mean of 3.
+
+    The error is ``ref^-1 est`` as (x, y, yaw), a right perturbation in the frame of the later
+    pose, as the odometry reports its key-frame covariances; a motion whose covariance is
+    singular or non-finite gets NaN."""
+    e = to_xy_yaw(np.asarray(est_motions, dtype=np.float64), "estimated motions")
+    r = to_xy_yaw(np.asarray(ref_motions, dtype=np.float64), "reference motions")
+    cov = np.asarray(covariances, dtype=np.float64)
+    if len(e) != len(r) or cov.shape != (len(e), 3, 3):
+        raise DataError(
+            f"NEES: {len(e)} estimated motions, {len(r)} reference motions and covariances of "
+            f"shape {cov.shape}: expected the same count and (N, 3, 3)"
+        )
+    out = np.full(len(e), np.nan)
+    for i in range(len(e)):
+        err = se2_between(r[i], e[i])
+        if not np.all(np.isfinite(cov[i])):
+            continue
+        try:
+            out[i] = float(err @ np.linalg.solve(cov[i], err))
+        except np.linalg.LinAlgError:
+            continue
+    return out
