@@ -9,14 +9,52 @@ import math
 
 import numpy as np
 
+#: Norms of a (w, x, y, z) rotation quaternion that are normalised: a writer that did not
+#: normalise, or printed few decimals, is off by far less than a factor 10; a norm outside these
+#: bounds (a quaternion scaled by 1e-8, say) is a corrupt value, not a rotation.
+QUAT_NORM_MIN = 0.1
+QUAT_NORM_MAX = 10.0
+_N2_MIN, _N2_MAX = (QUAT_NORM_MIN * (1 - 1e-9)) ** 2, (QUAT_NORM_MAX * (1 + 1e-9)) ** 2
+
+
+def quat_norms(quats) -> np.ndarray:
+    """Norms of (..., 4) quaternions without overflow (1e300 components give 1e300, not inf)."""
+    return np.hypot.reduce(np.asarray(quats, dtype=np.float64), axis=-1)
+
+
+def quat_norms_ok(norms) -> np.ndarray:
+    """Which quaternion norms are accepted (and normalised): the rule of
+    :func:`quat_to_rotation`, vectorised for the table readers. NaN is refused."""
+    n = np.asarray(norms, dtype=np.float64)
+    return (n >= QUAT_NORM_MIN) & (n <= QUAT_NORM_MAX)
+
+
+def quat_norm_problem(norm: float) -> str | None:
+    """Why a rotation quaternion of this norm is refused, as a phrase to follow "quaternion
+    ...", or ``None`` when :func:`quat_norms_ok` accepts it."""
+    if QUAT_NORM_MIN <= norm <= QUAT_NORM_MAX:
+        return None
+    if math.isnan(norm):
+        return "has non-finite values"
+    if norm == 0.0:
+        return "is zero"
+    return (
+        f"has norm {norm:.3g}, not a rotation (a quaternion is normalised when its norm lies in "
+        f"[{QUAT_NORM_MIN:g}, {QUAT_NORM_MAX:g}])"
+    )
+
 
 def quat_to_rotation(q_wxyz) -> np.ndarray:
-    """3x3 rotation matrix from a (w, x, y, z) quaternion (normalised here)."""
+    """3x3 rotation matrix from a (w, x, y, z) quaternion (normalised here); ValueError when
+    :func:`quat_norm_problem` refuses its norm."""
     # Python floats: numpy scalar arithmetic costs ~10x more (one call per sweep read).
     w, x, y, z = np.asarray(q_wxyz, dtype=np.float64).tolist()
     n = w * w + x * x + y * y + z * z
-    if not math.isfinite(n) or n < 1e-12:
-        raise ValueError(f"quaternion {list(q_wxyz)} has zero or non-finite norm")
+    # a hair wider than quat_norms_ok: a norm the tables accepted (computed in another order)
+    # must not fail here by a rounding
+    if not _N2_MIN <= n <= _N2_MAX:  # NaN fails too
+        why = quat_norm_problem(math.hypot(w, x, y, z))
+        raise ValueError(f"quaternion {list(q_wxyz)} {why or 'has a norm at the accepted limit'}")
     s = 2.0 / n
     return np.array(
         [

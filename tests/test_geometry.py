@@ -22,8 +22,23 @@ def test_quaternion_round_trip_and_nuscenes_order():
 
 
 def test_zero_quaternion_is_a_clear_error():
-    with pytest.raises(ValueError, match="zero or non-finite"):
+    with pytest.raises(ValueError, match="is zero"):
         g.quat_to_rotation([0, 0, 0, 0])
+
+
+@pytest.mark.parametrize("scale", [1e-8, 0.05, 20.0, 1e300])
+def test_quaternions_far_from_unit_are_refused_like_the_tables_do(scale):
+    q = np.array([np.cos(0.3), 0.0, 0.0, np.sin(0.3)]) * scale
+    assert not g.quat_norms_ok(g.quat_norms(q))
+    with pytest.raises(ValueError, match="not a rotation"):
+        g.quat_to_rotation(q)
+
+
+def test_quaternions_the_tables_accept_are_normalised():
+    q = np.array([np.cos(0.3), 0.0, 0.0, np.sin(0.3)])
+    for scale in (g.QUAT_NORM_MIN, 0.5, 3.0, g.QUAT_NORM_MAX):
+        assert g.quat_norms_ok(g.quat_norms(q * scale))
+        np.testing.assert_allclose(g.quat_to_rotation(q * scale), g.quat_to_rotation(q), atol=1e-12)
 
 
 def test_invert_and_compose():

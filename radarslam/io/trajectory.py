@@ -13,13 +13,20 @@ shortest round-trip representation, so positions survive a write/read unchanged.
 
 from __future__ import annotations
 
+import math
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
 
 from radarslam.errors import DataError
-from radarslam.geometry import make_transform, rigid_problem, rigid_problems, rotation_to_quat
+from radarslam.geometry import (
+    make_transform,
+    quat_norm_problem,
+    rigid_problem,
+    rigid_problems,
+    rotation_to_quat,
+)
 from radarslam.io.atomic import atomic_open
 from radarslam.io.text import read_text
 from radarslam.timestamps import check_timestamps_us
@@ -141,8 +148,10 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             )
         prev_lineno = lineno
         tx, ty, tz, qx, qy, qz, qw = _floats(path, lineno, tokens, 1)
-        if qx * qx + qy * qy + qz * qz + qw * qw < 1e-12:
-            raise DataError(f"{path}:{lineno}: zero-norm quaternion")
+        why = quat_norm_problem(math.hypot(qx, qy, qz, qw))
+        if why is not None:
+            what = "zero-norm quaternion" if why == "is zero" else f"quaternion {why}"
+            raise DataError(f"{path}:{lineno}: {what}")
         poses.append(make_transform((tx, ty, tz), (qw, qx, qy, qz)))
     if not poses:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))

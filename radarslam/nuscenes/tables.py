@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from radarslam.errors import DataError
-from radarslam.geometry import make_transform
+from radarslam.geometry import make_transform, quat_norm_problem, quat_norms, quat_norms_ok
 from radarslam.types import RADAR_CHANNELS
 
 log = logging.getLogger("radarslam.nuscenes")
@@ -382,7 +382,7 @@ def _warn_non_unit(
 ) -> None:
     """One warning per table when rotation quaternions are not unit (they are normalised)."""
     if norms is None:
-        norms = np.linalg.norm(quats, axis=1)
+        norms = quat_norms(quats)
     off = np.abs(norms - 1.0) > 1e-3
     if off.any():
         i = int(np.flatnonzero(off)[0])
@@ -550,10 +550,11 @@ class NuScenesTables:
                         f"{p_cs}: record {rec['token']!r} has a non-finite translation "
                         f"{cs_t[i].tolist()}"
                     )
-                if not np.isfinite(cs_q[i]).all() or np.linalg.norm(cs_q[i]) < 1e-9:
+                why = quat_norm_problem(float(quat_norms(cs_q[i])))
+                if why is not None:
                     raise DataError(
                         f"{p_cs}: record {rec['token']!r} has a degenerate rotation "
-                        f"{cs_q[i].tolist()}"
+                        f"{cs_q[i].tolist()}: the quaternion {why}"
                     )
         radar_cs = np.flatnonzero(cs_channel >= 0)
         _warn_non_unit(
@@ -758,9 +759,9 @@ class NuScenesTables:
                 f"{p_ego}: ego pose {missing!r} of a radar sample_data is missing "
                 f"({int((~found).sum())} missing in all)"
             )
-        norm_q = np.linalg.norm(u_q, axis=1)
+        norm_q = quat_norms(u_q)
         finite_q, finite_t = np.isfinite(u_q).all(axis=1), np.isfinite(u_t).all(axis=1)
-        bad = ~finite_q | ~finite_t | (norm_q < 1e-9)
+        bad = ~finite_q | ~finite_t | ~quat_norms_ok(norm_q)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             what = (
@@ -769,6 +770,8 @@ class NuScenesTables:
                 else "a non-finite translation"
                 if not finite_t[i]
                 else "a zero rotation quaternion"
+                if norm_q[i] == 0
+                else f"a rotation quaternion that {quat_norm_problem(float(norm_q[i]))}"
             )
             raise DataError(
                 f"{p_ego}: ego pose {uniq[i].decode()!r} has {what} (rotation {u_q[i].tolist()}, "

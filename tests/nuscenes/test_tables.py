@@ -300,6 +300,11 @@ def _edit_ego(root, **update) -> str:
             r"has a non-finite rotation \(rotation \[nan",
         ),
         ({"rotation": [0, 0, 0, 0]}, r"has a zero rotation quaternion \(rotation \[0\.0, 0\.0"),
+        (
+            {"rotation": [1e-8, 0.0, 0.0, 0.0]},
+            r"has a rotation quaternion that has norm 1e-08, not a rotation",
+        ),
+        ({"rotation": [1e300, 0.0, 0.0, 0.0]}, r"has norm 1e\+300, not a rotation"),
         ({"translation": [1.0, float("inf"), 0.0]}, r"has a non-finite translation .*\[1\.0, inf"),
         ({"translation": ["1", "2", "3"]}, r"field 'translation' is \['1', '2', '3'\], expected 3"),
         ({"translation": [1.0, True, 3.0]}, r"field 'translation' is \[1\.0, True, 3\.0\]"),
@@ -364,3 +369,21 @@ def test_calibrated_sensor_non_finite_translation(clone):
     t = NuScenesTables(root, VERSION, use_cache=False)
     with pytest.raises(DataError, match=r"calibrated_sensor\.json: record '\w+' has a non-finite"):
         _ = t.small
+
+
+@pytest.mark.parametrize("scale", [1e-8, 0.0, 1e300])
+def test_calibrated_sensor_rotation_far_from_unit_is_refused(clone, scale):
+    root = clone()
+    i = _radar_cs(root)
+    tok_ = {}
+
+    def edit(rs):
+        tok_["t"] = rs[i]["token"]
+        rs[i]["rotation"] = [scale * q for q in rs[i]["rotation"]]
+
+    _edit_records(root, "calibrated_sensor", edit)
+    t = NuScenesTables(root, VERSION, use_cache=False)
+    with pytest.raises(DataError, match=r"has a degenerate rotation .*: the quaternion ") as exc:
+        _ = t.small
+    assert str(exc.value).startswith(str(root / VERSION / "calibrated_sensor.json"))
+    assert repr(tok_["t"]) in str(exc.value)
