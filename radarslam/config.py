@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
+from pydantic_core import PydanticKnownError
 
 from radarslam.errors import ConfigError
 from radarslam.io.text import read_text
@@ -22,7 +23,26 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
 
 class StrictModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    """Base of every settings model: unknown keys are refused, and so are values that would only
+    fail deep inside a run:
+
+    * non-finite floats (``inf``, ``nan``) anywhere: ``allow_inf_nan=False``. A float setting
+      that means "no limit" is written ``null`` (``None``) instead.
+    * a negative ``seed``: numpy's random generators refuse one.
+
+    Lengths and sigmas that feed registration, voxel maps and kernels carry an upper bound of
+    their own (``le=1000`` m: the radars see at most ~250 m); beyond it a voxel key overflows or
+    a kernel turns to NaN.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _seed_not_negative(cls, value: Any, info: ValidationInfo) -> Any:
+        if info.field_name == "seed" and isinstance(value, int) and value < 0:
+            raise PydanticKnownError("greater_than_equal", {"ge": 0})
+        return value
 
 
 def _got(value: Any) -> str:

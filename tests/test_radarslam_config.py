@@ -45,3 +45,67 @@ def test_bad_yaml_and_missing_file(tmp_path):
         apply_overrides({}, ["novalue"])
     with pytest.raises(ConfigError, match="is not a section"):
         apply_overrides({"name": "x"}, ["name.sub=1"])
+
+
+# ---- numeric settings: non-finite, out-of-range and negative seeds refused at load -------------
+def _all_models():
+    from place_recognition.config import PlaceRecognizerConfig
+    from radarslam.eval.evaluate import EvalConfig
+    from radarslam.odometry.config import OdometryConfig
+    from radarslam.sim.config import SimConfig
+    from radarslam.slam.config import SlamConfig
+
+    return [SlamConfig, OdometryConfig, SimConfig, EvalConfig, PlaceRecognizerConfig]
+
+
+def test_every_settings_model_refuses_non_finite_floats():
+    for model in _all_models():
+        assert model.model_config.get("allow_inf_nan") is False, model.__name__
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "odometry.registration.fixed_sigma_m=inf",
+        "odometry.registration.fixed_sigma_m=1e300",
+        "odometry.registration.min_sigma_m=inf",
+        "odometry.registration.voxel_size_m=.inf",
+        "odometry.doppler.noise_floor_mps=inf",
+        "odometry.doppler.inlier_threshold_mps=nan",
+        "odometry.fusion.process_noise=[0.2, 0.2, .inf]",
+        "backend.static_map.voxel_size_m=inf",
+        "backend.static_map.voxel_size_m=1e6",
+        "backend.loop_verification.voxel_size_m=1e300",
+        "odometry.doppler.seed=-1",
+    ],
+)
+def test_bad_numeric_settings_name_the_key(override):
+    from radarslam.slam.config import SlamConfig
+
+    key = override.split("=")[0]
+    with pytest.raises(ConfigError) as exc:
+        load_config(SlamConfig, None, [override])
+    msg = str(exc.value)
+    assert msg.startswith(f"override {override!r}: '{key}") and "\n" not in msg
+
+
+def test_bounds_leave_the_shipped_ranges_alone():
+    from radarslam.slam.config import SlamConfig
+
+    cfg = load_config(
+        SlamConfig,
+        None,
+        ["odometry.registration.fixed_sigma_m=1000", "backend.static_map.voxel_size_m=1000"],
+    )
+    assert cfg.odometry.registration.fixed_sigma_m == 1000.0
+
+
+def test_negative_seed_of_the_simulator_is_refused(tmp_path):
+    from radarslam.sim import simulate
+    from radarslam.sim.config import load_sim_config
+
+    with pytest.raises(ConfigError, match=r"'seed': Input should be greater than or equal to 0"):
+        load_sim_config("tiny", ["seed=-1"])
+    with pytest.raises(ConfigError, match=r"simulate arguments: 'seed'"):
+        simulate("tiny", tmp_path / "out", seed=-1, progress=False)
+    assert not (tmp_path / "out").exists()

@@ -17,8 +17,8 @@ Triple = tuple[NonNegative, NonNegative, NonNegative]
 class PointsConfig(StrictModel):
     """Which points enter registration, and the reader's state filters."""
 
-    min_range_m: float = Field(1.0, ge=0)
-    max_range_m: float = Field(100.0, gt=0)
+    min_range_m: float = Field(1.0, ge=0, le=1000)
+    max_range_m: float = Field(100.0, gt=0, le=1000)
     #: Keep only Doppler inliers (static world) for registration.
     dynamic_free: bool = True
     #: De-skew each radar's points to the frame's common time with the Doppler motion.
@@ -43,7 +43,7 @@ class RegistrationConfig(StrictModel):
     """kiss-icp's scan-to-map registration (its own C++ code and voxel-hash map)."""
 
     enabled: bool = True
-    voxel_size_m: float = Field(1.0, gt=0)
+    voxel_size_m: float = Field(1.0, gt=0, le=1000)
     max_points_per_voxel: int = Field(20, ge=1)
     #: kiss-icp's iterations: 5 only brings the Doppler-seeded scan onto the right reflectors;
     #: the point-to-local-mean refinement below does the fine alignment (100 kiss-icp iterations
@@ -56,14 +56,14 @@ class RegistrationConfig(StrictModel):
     #: seed is within a few cm, so a wide window only admits wrong matches. Chosen on the bench
     #: drives (bench/odometry.py, plus a second long drive as a check): it lowered the drift on all
     #: three together with doppler_cov_scale 8; 0.5 was as good, 1.0 and 1.5 worse.
-    fixed_sigma_m: float = Field(0.7, gt=0)
-    min_sigma_m: float = Field(0.5, gt=0)
-    initial_sigma_m: float = Field(2.0, gt=0)
-    min_motion_m: float = Field(0.1, ge=0)
+    fixed_sigma_m: float = Field(0.7, gt=0, le=1000)
+    min_sigma_m: float = Field(0.5, gt=0, le=1000)
+    initial_sigma_m: float = Field(2.0, gt=0, le=1000)
+    min_motion_m: float = Field(0.1, ge=0, le=1000)
     #: Fewer source points than this: registration is skipped, the Doppler motion is used.
     min_source_points: int = Field(15, ge=3)
     #: Floor of the point residual sigma in the alignment covariance.
-    point_sigma_m: float = Field(0.3, gt=0)
+    point_sigma_m: float = Field(0.3, gt=0, le=1000)
     #: Nearest map points per source point: line fit of the covariance, mean of the refinement.
     line_neighbors: int = Field(5, ge=2)
     #: Rebuild the KD-tree mirror of the map used for covariances every N map updates.

@@ -25,7 +25,9 @@ def simulate_command(
     from radarslam.sim.generate import simulate
 
     if jobs is not None and jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+        raise ConfigError(f"--jobs {jobs}: must be >= 1")
+    if seed is not None and seed < 0:
+        raise ConfigError(f"--seed {seed}: must be >= 0 (numpy refuses negative seeds)")
     s = simulate(
         preset,
         out,

@@ -586,8 +586,10 @@ def simulate(
         upd["seed"] = int(seed)
     if jobs is not None:
         upd["jobs"] = int(jobs)
-    if upd:
-        cfg = cfg.model_copy(update=upd)
+    if upd:  # validated like the config's own values (a negative seed is refused)
+        from radarslam.config import build_config
+
+        cfg = build_config(SimConfig, {**cfg.model_dump(), **upd}, source="simulate arguments")
     if trajectory_tum is not None:
         cfg = cfg.model_copy(
             update={"ego": cfg.ego.model_copy(update={"trajectory_tum": str(trajectory_tum)})}

@@ -56,7 +56,7 @@ class LoopVerifierConfig(StrictModel):
     # that remain by consistency (two agreeing loops to link a session, the map's prediction
     # once linked). 1 m voxels and 30 deg headings are ~3x faster than 0.5 m / 15 deg.
     backend: Literal["grid", "open3d", "small_gicp"] = "grid"
-    voxel_size_m: float = Field(1.0, gt=0)
+    voxel_size_m: float = Field(1.0, gt=0, le=1000)
     min_points: int = Field(30, ge=3)
     heading_step_deg: float = Field(30.0, gt=0, le=360)
     # Heading hypotheses span this window centred on the initial guess's heading (360: all
@@ -64,11 +64,11 @@ class LoopVerifierConfig(StrictModel):
     # 180 deg) tries fewer hypotheses: cheaper, and fewer chances to align a look-alike.
     heading_range_deg: float = Field(360.0, gt=0, le=360)
     correlative_search: bool = True
-    search_radius_m: float = Field(15.0, ge=0)
-    grid_cell_m: float = Field(2.0, gt=0)
+    search_radius_m: float = Field(15.0, ge=0, le=1000)
+    grid_cell_m: float = Field(2.0, gt=0, le=1000)
     refine_top_k: int = Field(2, ge=1)
-    coarse_max_correspondence_m: float = Field(3.0, gt=0)
-    max_correspondence_m: float = Field(1.0, gt=0)
+    coarse_max_correspondence_m: float = Field(3.0, gt=0, le=1000)
+    max_correspondence_m: float = Field(1.0, gt=0, le=1000)
     max_iterations: int = Field(30, ge=1)
     # ICP stops when fitness and inlier RMSE change by less than this (relative) between
     # iterations; the acceptance tests are then computed on all points anyway.
@@ -85,7 +85,7 @@ class LoopVerifierConfig(StrictModel):
     # lies at random around each sweep's sensor, so it piles up along the driven path; two
     # local maps of a street driven in opposite lanes then attract each other's paths.
     min_neighbors: int = Field(0, ge=0)
-    persistence_radius_m: float = Field(0.5, gt=0)
+    persistence_radius_m: float = Field(0.5, gt=0, le=1000)
     # acceptance
     min_fitness: float = Field(0.45, ge=0, le=1)
     max_inlier_rmse_m: float = Field(0.6, gt=0)
@@ -94,9 +94,9 @@ class LoopVerifierConfig(StrictModel):
     # the most discriminative single test across days on the synthetic city (171 global
     # registrations: correct ones 0.10-0.25, wrong ones <= 0.109), because a 1 m voxel map is
     # dense enough that almost any alignment finds neighbours within 1 m, not within 0.3 m.
-    tight_correspondence_m: float = Field(0.3, gt=0)
+    tight_correspondence_m: float = Field(0.3, gt=0, le=1000)
     min_tight_fitness: float = Field(0.12, ge=0, le=1)
-    overlap_cell_m: float = Field(2.0, gt=0)
+    overlap_cell_m: float = Field(2.0, gt=0, le=1000)
     # Degeneracy: the smaller / larger eigenvalue of sum(n n^T) over the point-to-line normals of
     # the final correspondences (a PCA of the ``normal_neighbors`` nearest candidate points). A
     # straight street constrains only its cross direction, so a look-alike stretch of it aligns

@@ -17,7 +17,7 @@ from radarslam.errors import DataError
 
 
 class StaticMapConfig(StrictModel):
-    voxel_size_m: float = Field(0.5, gt=0)
+    voxel_size_m: float = Field(0.5, gt=0, le=1000)
     max_static_speed_mps: float = Field(0.5, ge=0)  # |v_comp| above this is a moving object
     min_points_per_voxel: int = Field(2, ge=1)
 
