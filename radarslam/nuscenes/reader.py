@@ -4,8 +4,10 @@
 ``.pcd`` files with :mod:`.pcd`. Points are returned in their sensor frame with the calibration
 (``ego_from_sensor``) and the ground-truth ego pose of that very sample_data (``world_from_ego``).
 
-Documented skips (never errors): points with a NaN/inf field are dropped, and a sweep with no
-(finite) point is returned as a :class:`RadarSweep` with 0 points. Both are counted in
+Documented skips (never errors): points with a NaN/inf field are dropped, so are points farther
+than :data:`MAX_POINT_COORDINATE_M` from their radar along any axis (an ARS408 sees at most ~250 m:
+such a point is a corrupt value, and would put the map or a voxel key out of range), and a sweep
+with no point left is returned as a :class:`RadarSweep` with 0 points. All are counted in
 ``reader.skip_counts`` and logged once per scene (logger ``radarslam.nuscenes``). The exception:
 :meth:`NuScenesRadar.iter_frames` raises :class:`DataError` at the end of a scene whose every
 sweep it read was empty (a scene without a single radar point is broken data, not a gap).
@@ -40,6 +42,9 @@ log = logging.getLogger("radarslam.nuscenes")
 _FLOAT_FIELDS = ("x", "y", "z", "rcs", "vx", "vy", "vx_comp", "vy_comp")
 #: Nominal ARS408 sweep period (13 Hz), used when a scene has too few sweeps to measure it.
 NOMINAL_PERIOD_US = 76_923
+#: Largest |x|, |y| or |z| of a point in its sensor frame that is kept: four times the ARS408's
+#: ~250 m far range.
+MAX_POINT_COORDINATE_M = 1000.0
 
 
 @dataclass
@@ -48,17 +53,23 @@ class SkipCounts:
     once however often it is read."""
 
     nan_points: int = 0  # points dropped because a float field was NaN/inf
-    empty_sweeps: int = 0  # sweeps with no finite point (yielded with 0 points)
+    empty_sweeps: int = 0  # sweeps with no point left (yielded with 0 points)
+    far_points: int = 0  # finite points beyond MAX_POINT_COORDINATE_M, dropped
     per_scene: dict[str, dict[str, int]] = field(default_factory=dict)
 
-    def add(self, scene: str, nan_points: int, empty: bool) -> None:
-        if not nan_points and not empty:
+    def add(self, scene: str, nan_points: int, empty: bool, far_points: int = 0) -> None:
+        if not nan_points and not empty and not far_points:
             return
         self.nan_points += nan_points
         self.empty_sweeps += int(empty)
-        d = self.per_scene.setdefault(scene, {"nan_points": 0, "empty_sweeps": 0})
+        self.far_points += far_points
+        d = self.per_scene.setdefault(scene, dict.fromkeys(_SKIP_KEYS, 0))
         d["nan_points"] += nan_points
         d["empty_sweeps"] += int(empty)
+        d["far_points"] += far_points
+
+
+_SKIP_KEYS = ("nan_points", "empty_sweeps", "far_points")
 
 
 def _channel_index(channel: str) -> int:
@@ -178,7 +189,7 @@ class NuScenesRadar:
         self._scene_infos: list[SceneInfo] | None = None
         self._reported: set[str] = set()
         self._skipped_rows: set[int] = set()
-        self._empty_rows: set[int] = set()  # sweeps with no (finite) point, before filtering
+        self._empty_rows: set[int] = set()  # sweeps with no point kept, before filtering
 
     # ---- scenes ------------------------------------------------------------------------------
     def scenes(self) -> list[SceneInfo]:
@@ -337,23 +348,28 @@ class NuScenesRadar:
         filename = radar.filename[row].decode("utf-8")
         points = read_pcd(os.path.join(self._root, filename))
         empty = len(points) == 0
-        nan_dropped = 0
+        nan_dropped = far_dropped = 0
         if len(points):
             finite = np.ones(len(points), dtype=bool)
             for name in _FLOAT_FIELDS:
                 finite &= np.isfinite(points[name])
-            if not finite.all():
+            near = finite.copy()
+            for name in ("x", "y", "z"):
+                with np.errstate(invalid="ignore"):  # NaN: already dropped
+                    near &= np.abs(points[name]) <= MAX_POINT_COORDINATE_M
+            if not near.all():
                 nan_dropped = int((~finite).sum())
-                points = points[finite]
+                far_dropped = int((finite & ~near).sum())
+                points = points[near]
                 empty = len(points) == 0
         if empty:
             self._empty_rows.add(row)
-        if (nan_dropped or empty) and row not in self._skipped_rows:
+        if (nan_dropped or far_dropped or empty) and row not in self._skipped_rows:
             self._skipped_rows.add(row)  # counted once per sweep, however often it is read
             if scene_name is None:
                 small = tables.small
                 scene_name = small.scenes[small.sample_scene[radar.sample[row]]]["name"]
-            self.skip_counts.add(scene_name, nan_dropped, empty)
+            self.skip_counts.add(scene_name, nan_dropped, empty, far_dropped)
         points = (self.filters if filters is None else filters).apply(points)
         cs = int(radar.calibrated_sensor[row])
         ego_from_sensor = self._ego_from_sensor.get(cs)
@@ -391,21 +407,29 @@ class NuScenesRadar:
         now = self.skip_counts.per_scene.get(scene_name)
         if now is None:
             return
-        before = before or {"nan_points": 0, "empty_sweeps": 0}
+        before = before or dict.fromkeys(_SKIP_KEYS, 0)
         d_nan = now["nan_points"] - before["nan_points"]
         d_empty = now["empty_sweeps"] - before["empty_sweeps"]
-        if d_nan or d_empty:
+        d_far = now["far_points"] - before["far_points"]
+        if d_nan or d_empty or d_far:
             # a warning the first time a scene shows skips, then debug: stats and multi-channel
             # passes would otherwise repeat it once per radar
             first = scene_name not in self._reported
             self._reported.add(scene_name)
+            far = (
+                f", {d_far} point(s) farther than {MAX_POINT_COORDINATE_M:g} m from their radar "
+                "dropped"
+                if d_far
+                else ""
+            )
             log.log(
                 logging.WARNING if first else logging.DEBUG,
                 "scene %s: %d empty sweep(s) yielded with 0 points, %d point(s) with NaN fields "
-                "dropped",
+                "dropped%s",
                 scene_name,
                 d_empty,
                 d_nan,
+                far,
             )
 
     def iter_sweeps(
@@ -592,7 +616,8 @@ class NuScenesRadar:
                 first = self.tables.radar.filename[rows[0]].decode("utf-8")
                 raise DataError(
                     f"scene {info.name!r}: all {len(rows)} radar sweeps are empty (no point with "
-                    f"finite values), e.g. {os.path.join(self._root, first)}"
+                    f"finite values within {MAX_POINT_COORDINATE_M:g} m), e.g. "
+                    f"{os.path.join(self._root, first)}"
                 )
         self._report_skips(info.name, before)
 

@@ -22,6 +22,11 @@ class StaticMapConfig(StrictModel):
     min_points_per_voxel: int = Field(2, ge=1)
 
 
+#: Largest |voxel index| along an axis: cell indices stay exact in float64 and their differences
+#: in int64.
+_MAX_CELL = 2.0**52
+
+
 @dataclass(frozen=True)
 class StaticMap:
     xyz: np.ndarray  # (M, 3) voxel centroids in the world frame
@@ -85,13 +90,25 @@ class StaticMapBuilder:
         rcs = np.concatenate(self._rcs)
         if len(xyz) == 0:
             return StaticMap(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64))
-        cells = np.floor(xyz / self.config.voxel_size_m).astype(np.int64)
+        cells_f = np.floor(xyz / self.config.voxel_size_m)
+        far = np.abs(cells_f).max(axis=1) > _MAX_CELL
+        if far.any():  # float -> int64 would wrap and merge unrelated voxels
+            i = int(np.flatnonzero(far)[0])
+            raise DataError(
+                f"static map: point {xyz[i].tolist()} m is too far from the origin for "
+                f"{self.config.voxel_size_m:g} m voxels ({int(far.sum())} such point(s)): "
+                "are the poses corrupt?"
+            )
+        cells = cells_f.astype(np.int64)
         # One scalar key per voxel: a 1-D unique and bincount instead of np.unique(axis=0) and
         # np.add.at, 6 s -> 0.3 s for the 2.5 M points of a 1,280-key-frame run.
         cells -= cells.min(axis=0)
         span = cells.max(axis=0) + 1
-        keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        if int(span[0]) * int(span[1]) * int(span[2]) < 2**63:
+            keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+            _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        else:  # the scalar key would overflow int64: unique rows instead (slower, same voxels)
+            _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
         inverse = inverse.reshape(-1)
         n = len(counts)
         sums = np.column_stack(

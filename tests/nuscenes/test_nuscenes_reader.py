@@ -255,7 +255,9 @@ def test_empty_sweeps_and_nan_points_are_counted(mini, reader, caplog):
         frames = list(reader.iter_frames("scene-0002"))
         list(reader.iter_sweeps("scene-0002", "RADAR_BACK_LEFT"))  # again: counted, not re-warned
     assert reader.skip_counts.empty_sweeps == 2 and reader.skip_counts.nan_points == 3
-    assert reader.skip_counts.per_scene == {"scene-0002": {"nan_points": 3, "empty_sweeps": 2}}
+    assert reader.skip_counts.per_scene == {
+        "scene-0002": {"nan_points": 3, "empty_sweeps": 2, "far_points": 0}
+    }
     assert (
         "scene scene-0002: 2 empty sweep(s)" in caplog.text and "3 point(s) with NaN" in caplog.text
     )
@@ -424,3 +426,29 @@ def test_accumulate_arguments(mini, reader):
             reader.accumulate(sample, min_distance_m=d)
     with pytest.raises(ConfigError, match="channels must be a radar channel name or a list"):
         reader.accumulate(sample, channels=5)
+
+
+def test_points_beyond_the_physical_range_are_dropped_and_reported_once(mini, clone, caplog):
+    from radarslam.nuscenes.pcd import read_pcd
+    from radarslam.nuscenes.reader import MAX_POINT_COORDINATE_M
+
+    root = clone(copy_files=True)
+    reader = NuScenesRadar(root, VERSION, use_cache=False)
+    tokens = reader.sweep_tokens("scene-0004", "RADAR_FRONT")[3:5]
+    dropped = 0
+    for tok, far in zip(tokens, (1e30, 1e10), strict=True):
+        path = root / reader.load_sweep(tok).filename
+        pts = read_pcd(path)
+        pts["x"][::3] = far
+        dropped += len(pts[::3])
+        path.write_bytes(pcd_bytes(pts))
+    reader = NuScenesRadar(root, VERSION, use_cache=False, filters=RadarPointFilter.none())
+    with caplog.at_level(logging.WARNING, logger="radarslam.nuscenes"):
+        frames = list(reader.iter_frames("scene-0004"))
+        list(reader.iter_sweeps("scene-0004", "RADAR_FRONT"))  # again: not re-warned
+    assert reader.skip_counts.far_points == dropped
+    assert reader.skip_counts.per_scene["scene-0004"]["far_points"] == dropped
+    assert caplog.text.count(f"{dropped} point(s) farther than 1000 m") == 1
+    for f in frames:
+        for s in f.sweeps.values():
+            assert np.abs(s.points["x"]).max(initial=0) <= MAX_POINT_COORDINATE_M

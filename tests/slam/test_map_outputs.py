@@ -144,3 +144,22 @@ def test_static_map_takes_an_empty_key_frame_cloud():
     builder = StaticMapBuilder()
     builder.add(np.eye(4), np.zeros(0, dtype=ACCUMULATED_DTYPE))  # every radar silent
     assert len(builder.build().xyz) == 0
+
+
+def test_static_map_voxel_keys_never_overflow():
+    # spans of ~1e9 voxels per axis: the scalar key (span product ~1e27) would wrap int64
+    pts = np.array([[0.0, 0.0, 0.0], [1e6, 1e6, 1e6], [0.0, 1e6, 0.0], [1e6, 0.0, 0.0]])
+    builder = StaticMapBuilder(StaticMapConfig(voxel_size_m=0.001, min_points_per_voxel=1))
+    builder.add(np.eye(4), np.repeat(pts, 2, axis=0))
+    m = builder.build()
+    assert len(m) == 4 and set(m.hits.tolist()) == {2}
+    np.testing.assert_allclose(np.sort(m.xyz, axis=0), np.sort(pts, axis=0))
+
+
+def test_static_map_refuses_points_beyond_exact_voxel_indices():
+    from radarslam.errors import DataError
+
+    builder = StaticMapBuilder(StaticMapConfig(voxel_size_m=0.5))
+    builder.add(np.eye(4), np.array([[1.0, 2.0, 0.0], [1e30, 2.0, 0.0]]))
+    with pytest.raises(DataError, match=r"static map: point \[1e\+30, 2\.0, 0\.0\] m is too far"):
+        builder.build()
