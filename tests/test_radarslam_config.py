@@ -109,3 +109,20 @@ def test_negative_seed_of_the_simulator_is_refused(tmp_path):
     with pytest.raises(ConfigError, match=r"simulate arguments: 'seed'"):
         simulate("tiny", tmp_path / "out", seed=-1, progress=False)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "key"),
+    [
+        ("inner:\n  iterations: 5\n  voxel_size_m: 1\n  iterations: 7\n", 4, "iterations"),
+        ("name: a\ninner: {iterations: 1, iterations: 2}\n", 2, "iterations"),
+        ("name: a\nname: b\n", 2, "name"),
+    ],
+)
+def test_duplicate_yaml_keys_name_the_file_key_and_line(tmp_path, text, line, key):
+    path = tmp_path / "dup.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(Outer, path)
+    assert str(exc.value).startswith(f"{path}: line {line} ")
+    assert f"duplicate key {key!r}" in str(exc.value)
