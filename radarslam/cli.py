@@ -12,6 +12,11 @@ import typer
 
 from radarslam.errors import RadarSlamError
 
+try:  # typer >= 0.2x ships its own copy of click
+    from typer._click import exceptions as _click_exceptions
+except ImportError:  # pragma: no cover
+    from click import exceptions as _click_exceptions
+
 app = typer.Typer(
     name="radarslam",
     help="Radar SLAM for nuScenes-style automotive radar (5x Continental ARS408).",
@@ -78,17 +83,35 @@ def _was_interrupted(exc: BaseException) -> bool:
     return False
 
 
+def _usage_error_line(exc) -> str:
+    """One line for a click/typer usage error (bad option value, unknown command, missing
+    option): typer would draw a multi-line box."""
+    msg = " ".join(exc.format_message().split()).replace("Value error, ", "").rstrip(".")
+    ctx = getattr(exc, "ctx", None)
+    where = f"; see '{ctx.command_path} --help'" if ctx is not None else ""
+    return f"error: {msg}{where}"
+
+
 def main() -> None:
     """Console entry point: user errors become one line on stderr and exit status 2.
 
-    typer's standalone mode already turns usage errors into a usage line (exit 2); what reaches
-    this handler is a :class:`RadarSlamError` raised by a command, an OSError no command turned
-    into one (printed as one line too), or an interruption: Ctrl-C or SIGTERM print
-    ``interrupted`` and exit with status 130.
+    Usage errors (a bad option value, an unknown command or option, a missing option), a
+    :class:`RadarSlamError` raised by a command and an OSError no command turned into one are
+    each printed as one ``error:`` line; an interruption (Ctrl-C or SIGTERM) prints
+    ``interrupted`` and exits with status 130.
     """
     _install_sigterm_handler()
     try:
-        app()
+        # not standalone: usage errors reach this handler instead of typer's box
+        code = app(standalone_mode=False)
+    except _click_exceptions.NoArgsIsHelpError:  # the help is already shown
+        sys.exit(2)
+    except _click_exceptions.ClickException as exc:
+        print(_usage_error_line(exc), file=sys.stderr)
+        sys.exit(2)
+    except typer.Abort:  # end of input at a prompt
+        print("aborted", file=sys.stderr)
+        sys.exit(1)
     except RadarSlamError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
@@ -103,3 +126,9 @@ def main() -> None:
         where = f"{exc.filename}: " if exc.filename is not None else ""
         print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
         sys.exit(2)
+    # typer's non-standalone mode returns an exit code instead of exiting: 130 is its
+    # KeyboardInterrupt, 0 a --help
+    if isinstance(code, int) and not isinstance(code, bool) and code != 0:
+        if code == 130:
+            print("interrupted", file=sys.stderr)
+        sys.exit(code)

@@ -67,3 +67,46 @@ def test_sigterm_acts_like_ctrl_c_and_cleans_up_temporary_files(run_main, capsys
     code, err = run_main(go, capsys)
     assert code == 130 and err.strip() == "interrupted"
     assert list(tmp_path.iterdir()) == []  # neither the target nor a temporary file
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (
+            ["run", "--out", "x", "--dataset", "foo"],
+            "error: Invalid value for '--dataset': 'foo' is not one of 'nuscenes', 'synthetic'",
+        ),
+        (
+            ["run", "--out", "x", "--max-scenes", "0"],
+            "error: Invalid value for '--max-scenes': Input should be greater than or equal to 1",
+        ),
+        (["bogus"], "error: No such command 'bogus'"),
+        (["run"], "error: Missing option '--out'"),
+        (["run", "--out"], "error: Option '--out' requires an argument"),
+    ],
+)
+def test_usage_errors_are_one_line(monkeypatch, capsys, tmp_path, argv, expected):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["radarslam", *argv])
+    old_term = signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            cli.main()
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert err.startswith(expected) and err.count("\n") == 1, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_help_still_exits_zero(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["radarslam", "run", "--help"])
+    old_term = signal.getsignal(signal.SIGTERM)
+    try:
+        cli.main()
+    except SystemExit as exc:
+        assert exc.code in (0, None)
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
+    assert "--dataroot" in capsys.readouterr().out
