@@ -95,16 +95,17 @@ def segments(reader, scenes: list[str], chain: bool, max_gap_s: float) -> list[l
     return groups
 
 
-def run_segment(job: tuple[str, str, list[str]]) -> dict:
+def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
     """Every method over one segment (a worker process): poses, ground truth, key-frame motions of
     ours, CPU ms per frame."""
+    from radarslam.config import apply_overrides
     from radarslam.nuscenes.filters import RadarPointFilter
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import make_odometry
     from radarslam.odometry.config import OdometryConfig
 
-    dataroot, version, scenes = job
-    cfg = OdometryConfig()
+    dataroot, version, scenes, overrides = job
+    cfg = OdometryConfig.model_validate(apply_overrides(OdometryConfig().model_dump(), overrides))
     pc = cfg.points
     reader = NuScenesRadar(dataroot, version)
     filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
@@ -297,13 +298,13 @@ def verdicts(per_scene, pool, heading, nees, realtime) -> list[str]:
 
 
 def evaluate(name: str, dataroot: Path, version: str, scenes: list[str] | None, chain: bool,
-             jobs: int) -> dict:  # fmt: skip
+             jobs: int, overrides: list[str]) -> dict:  # fmt: skip
     from radarslam.nuscenes.reader import NuScenesRadar
 
     reader = NuScenesRadar(dataroot, version)
     names = scenes or [s.name for s in reader.scenes()]
     groups = segments(reader, names, chain, 1.0)
-    jobs_list = [(str(dataroot), version, g) for g in groups]
+    jobs_list = [(str(dataroot), version, g, overrides) for g in groups]
     t = time.perf_counter()
     with mp.get_context("fork").Pool(max(1, min(jobs, len(jobs_list)))) as pool:
         results = pool.map(run_segment, jobs_list, chunksize=1)
@@ -357,6 +358,12 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/radarslam_bench_odometry"))
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        help="odometry config override, e.g. fusion.gate_chi2=20",
+    )
     args = ap.parse_args()
 
     # Imported before the workers fork, so one-time imports are not charged to a segment's CPU.
@@ -368,7 +375,9 @@ def main() -> None:
     if args.synthetic:
         args.work.mkdir(parents=True, exist_ok=True)
         for name, root in synthetic_dataroots(args.work).items():
-            summary[name] = evaluate(name, root, "v1.0-trainval", None, name == "long", args.jobs)
+            summary[name] = evaluate(
+                name, root, "v1.0-trainval", None, name == "long", args.jobs, args.set
+            )
     else:
         if not (args.dataroot / args.version).is_dir():
             print(
@@ -379,7 +388,9 @@ def main() -> None:
             )
             sys.exit(2)
         scenes = [s for s in args.scenes.split(",") if s] if args.scenes else None
-        summary["real"] = evaluate("real", args.dataroot, args.version, scenes, False, args.jobs)
+        summary["real"] = evaluate(
+            "real", args.dataroot, args.version, scenes, False, args.jobs, args.set
+        )
     if args.json:
         args.json.write_text(json.dumps(summary, indent=2, default=float) + "\n")
 

@@ -58,3 +58,26 @@ def sim_dataroot(tmp_path_factory) -> Callable[..., Path]:
         return cache[key]
 
     return make
+
+
+#: The real nuScenes radar split (CC BY-NC-SA: read in place, never copied into the repository).
+REAL_VERSION = "v1.0-mini"
+
+
+@pytest.fixture(scope="session")
+def real_dataroot() -> Path:
+    """``../shared/data/nuscenes-mini-radar`` beside the checkout (``RADARSLAM_REAL_DATAROOT``
+    overrides it). A missing folder fails the test that needs it with this message rather than
+    skipping it: the real data decides the odometry's accuracy."""
+    import os
+
+    default = Path(__file__).resolve().parents[2] / "shared" / "data" / "nuscenes-mini-radar"
+    root = Path(os.environ.get("RADARSLAM_REAL_DATAROOT", default))
+    if not (root / REAL_VERSION / "scene.json").is_file():
+        pytest.fail(
+            f"{root / REAL_VERSION}: the real nuScenes radar split is missing (expected "
+            "../shared/data/nuscenes-mini-radar beside the checkout, or set "
+            "RADARSLAM_REAL_DATAROOT)",
+            pytrace=False,
+        )
+    return root

@@ -212,6 +212,7 @@ class RadarOdometry:
         self.doppler = DopplerEstimator(self.config.doppler)
         self._q = np.diag(np.square(self.config.fusion.process_noise))
         self._growth = np.diag(self.config.fusion.invalid_doppler_growth)
+        self._twist_floor = np.diag(np.square(self.config.fusion.twist_sigma_floor))
         #: Bytes of the ego_from_sensor matrices already checked rigid: the calibration
         #: of a radar repeats in every sweep, so each is checked once, not 5 times a frame.
         self._good_calibrations: set[tuple[str, bytes]] = set()
@@ -350,7 +351,7 @@ class RadarOdometry:
         stopped = False
         if fit.valid:
             twist = fit.twist
-            twist_cov = _sym(fit.covariance) * cfg.fusion.doppler_cov_scale
+            twist_cov = _sym(fit.covariance) * cfg.fusion.doppler_cov_scale + self._twist_floor
             if fit.ego_static and _chi2(twist, twist_cov) < _ZERO_VELOCITY_CHI2:
                 # Zero-velocity update: the static rule fired and the refitted twist cannot be
                 # told from 0, so integrating its noise would only add drift.
