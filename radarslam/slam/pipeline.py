@@ -195,6 +195,63 @@ def _lower_priority() -> None:
         pass
 
 
+#: prctl(2) option: the signal a process receives when its parent dies (Linux).
+_PR_SET_PDEATHSIG = 1
+
+#: Seconds between two checks of the parent where prctl is not available.
+_PARENT_CHECK_S = 0.5
+
+
+def _die_with_parent(parent: int, pdeathsig: bool = True) -> None:
+    """End this forked process when ``parent`` dies, whatever it is doing then.
+
+    A parent killed hard (``kill -9``, the OOM killer) runs no cleanup: a helper blocked on a
+    full queue or in its queue's feeder would wait forever, reparented to init. Linux kills it
+    with SIGKILL (nothing of a helper's needs cleaning up: its queues die with the run);
+    elsewhere a thread notices the new parent id within ``_PARENT_CHECK_S``. The parent may
+    have died before this runs, hence the check after prctl."""
+    armed = False
+    if pdeathsig and sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+        except (OSError, AttributeError):  # no prctl in this libc: the thread below
+            armed = False
+    if os.getppid() != parent:
+        os._exit(1)
+    if armed:
+        return
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(_PARENT_CHECK_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _helper_process_setup(parent: int) -> None:
+    """First thing the reading and odometry processes do. Ctrl-C reaches every process of the
+    terminal's process group: the helpers ignore it (a second one would otherwise print their
+    tracebacks) and the parent, which gets the KeyboardInterrupt, stops them. SIGTERM
+    (``Process.terminate``) ends them at once, even inside compiled code, instead of going
+    through a Python handler inherited from the command line."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with_parent(parent)
+    _lower_priority()
+
+
+#: Seconds between two collections of ended helper processes by the parent.
+_REAP_EVERY_S = 0.5
+
+
 def _put_error(queue, exc: BaseException, what: str) -> None:
     try:
         queue.put(("error", exc))
@@ -202,11 +259,11 @@ def _put_error(queue, exc: BaseException, what: str) -> None:
         queue.put(("error", DataError(f"{what}: {type(exc).__name__}: {exc}")))
 
 
-def _reading_process(reader, infos, filters, frames) -> None:
+def _reading_process(reader, infos, filters, frames, parent: int) -> None:
     """Body of the forked reading process: every scene's frames in batches, then
     ``("end", name)``; after the last scene ``("done", seconds spent reading)``."""
     try:
-        _lower_priority()
+        _helper_process_setup(parent)
         data_s = 0.0
         for info in infos:
             batch = []
@@ -262,12 +319,12 @@ class _QueuedFrames:
         self._timings.data_s = message[1]
 
 
-def _odometry_process(pipeline, infos, messages, finished, frames=None) -> None:
+def _odometry_process(pipeline, infos, messages, finished, parent: int, frames=None) -> None:
     """Body of the forked odometry process: stream messages, then its timings (or its error);
     ``finished`` (an Event) is set once the work is done and only the queue is left. ``frames``:
     the queue of a reading process (None: read here)."""
     try:
-        _lower_priority()
+        _helper_process_setup(parent)
         source = None if frames is None else _QueuedFrames(frames, pipeline.timings)
         for message in pipeline._odometry_messages(infos, source):
             messages.put(message)
@@ -682,19 +739,19 @@ class SlamPipeline:
         procs = {
             "radar reading": ctx.Process(
                 target=_reading_process,
-                args=(self.reader, infos, self._frame_filter, frames),
+                args=(self.reader, infos, self._frame_filter, frames, os.getpid()),
                 name="slam-reading",
             ),
             "odometry": ctx.Process(
                 target=_odometry_process,
-                args=(self, infos, messages, finished, frames),
+                args=(self, infos, messages, finished, os.getpid(), frames),
                 name="slam-odometry",
             ),
         }
-        for proc in procs.values():
-            proc.daemon = True
-            proc.start()
         try:
+            for proc in procs.values():
+                proc.daemon = True
+                proc.start()
             self._load_recognizer()  # while the data is read and the odometry starts
             with _one_torch_thread() as all_threads:
                 self._consume(infos, bar, procs, messages, finished, all_threads)
@@ -703,16 +760,26 @@ class SlamPipeline:
         finally:
             for proc in procs.values():
                 if proc.is_alive():
-                    proc.terminate()
+                    proc.terminate()  # SIGTERM ends a helper at once (_helper_process_setup)
+                    proc.join(timeout=5.0)
+                if proc.is_alive():
+                    proc.kill()
                     proc.join()
 
     def _consume(self, infos, bar, procs, messages, finished, all_threads) -> None:
         """Handle the odometry process's messages until its "done"."""
         import queue as queue_mod
 
+        reap_at = time.monotonic() + _REAP_EVERY_S
         while True:
+            if time.monotonic() >= reap_at:
+                # is_alive() collects a helper that has ended (the reader, seconds before the
+                # odometry): were this process killed meanwhile, it would be left to init.
+                for proc in procs.values():
+                    proc.is_alive()
+                reap_at = time.monotonic() + _REAP_EVERY_S
             try:
-                message = messages.get(timeout=1.0)
+                message = messages.get(timeout=_REAP_EVERY_S)
             except queue_mod.Empty:
                 for what, proc in procs.items():
                     # the reader may be done (exit code 0) long before the odometry
