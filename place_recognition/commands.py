@@ -155,6 +155,10 @@ def build_db_cmd(
 
     if not scene and location is None:
         raise ConfigError("give --scene (repeatable) or --location")
+    if scene and location is not None:
+        raise ConfigError(
+            f"--scene {scene[0]!r} and --location {location!r}: give one or the other"
+        )
     check_output_file(out)
     cfg = load_config(PlaceRecognizerConfig, config, overrides)
     rec = PlaceRecognizer(checkpoint=checkpoint, config=cfg)
@@ -185,6 +189,8 @@ def query_cmd(
     if k < 1:
         raise ConfigError(f"-k {k}: must be >= 1")
     rec = PlaceRecognizer.load(database, checkpoint=checkpoint)
+    if len(rec) == 0:
+        raise DataError(f"{database}: the database holds no places; nothing to query against")
     reader = NuScenesRadar(dataroot, version)
     found = False
     for token, clouds in iter_scene_sequences(rec, reader, scene):

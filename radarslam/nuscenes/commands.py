@@ -8,6 +8,24 @@ from typing import Annotated
 import typer
 
 
+def scene_names(text: str | None, option: str = "--scenes") -> list[str] | None:
+    """The names of a comma-separated ``--scenes`` value; ``None`` when the option was not given.
+
+    An empty name (``--scenes ""``, ``a,,b``, a trailing comma) is a :class:`ConfigError`: the
+    option left out means all scenes, an empty value is a mistake, not a request for them."""
+    from radarslam.errors import ConfigError
+
+    if text is None:
+        return None
+    names = [s.strip() for s in text.split(",")]
+    if not all(names):
+        raise ConfigError(
+            f"{option} {text!r}: empty scene name; give comma-separated scene names, or leave "
+            f"{option} out for all scenes"
+        )
+    return names
+
+
 def stats(
     dataroot: Annotated[Path, typer.Argument(help="nuScenes dataroot (holds <version>/*.json).")],
     version: Annotated[str, typer.Option(help="v1.0-mini, v1.0-trainval or v1.0-test.")] = (
@@ -28,8 +46,8 @@ def stats(
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.nuscenes.stats import dataset_statistics
 
+    names = scene_names(scenes)
     reader = NuScenesRadar(dataroot, version)
-    names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
     if names:
         for name in names:
             reader.scene(name)  # unknown names fail before any work

@@ -34,6 +34,7 @@ def odometry(
     """Radar odometry over scenes: poses in TUM and KITTI formats, ground truth alongside."""
     from radarslam.config import load_config
     from radarslam.errors import ConfigError
+    from radarslam.nuscenes.commands import scene_names
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import METHODS
     from radarslam.odometry.config import OdometryConfig
@@ -45,7 +46,7 @@ def odometry(
     cfg = load_config(OdometryConfig, path, set_)
     check_output_dir(out)  # a bad --out fails now, not after the run
     reader = NuScenesRadar(dataroot, version)
-    names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
+    names = scene_names(scenes)
     infos = [reader.scene(n) for n in names] if names else reader.scenes()
     traj = run_odometry(reader, infos, cfg, method=method, progress=progress)
     summary = write_outputs(traj, out, cfg)

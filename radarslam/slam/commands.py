@@ -29,11 +29,24 @@ def _slam_config(config: Path | None, overrides: list[str] | None, no_loops: boo
     return load_config(SlamConfig, path, overrides)
 
 
+def _check_selection(scenes: str | None, location: str | None) -> list[str] | None:
+    """The ``--scenes`` names; a :class:`ConfigError` for an empty name or for ``--scenes``
+    together with ``--location`` (one would be ignored)."""
+    from radarslam.errors import ConfigError
+    from radarslam.nuscenes.commands import scene_names
+
+    names = scene_names(scenes)
+    if names is not None and location is not None:
+        raise ConfigError(f"--scenes {scenes!r} and --location {location!r}: give one or the other")
+    return names
+
+
 def _select_scenes(reader, scenes: str | None, location: str | None, max_scenes: int | None):
     from radarslam.errors import ConfigError, DataError
 
-    if scenes:
-        chosen = [reader.scene(s.strip()) for s in scenes.split(",") if s.strip()]
+    names = _check_selection(scenes, location)
+    if names is not None:
+        chosen = [reader.scene(s) for s in names]
     elif location:
         chosen = reader.scenes_for_location(location)
     else:
@@ -172,6 +185,7 @@ def run_command(
     from radarslam.slam.outputs import check_results_dir
 
     cfg = _slam_config(config, override, no_loops, checkpoint)
+    _check_selection(scenes, location)
     check_results_dir(out)  # before generating or reading any data
     if dataset == Dataset.synthetic:
         dataroot = dataroot or Path("data") / f"synthetic-{preset}"
