@@ -137,6 +137,10 @@ def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
     return out
 
 
+def _label(scenes: list[str]) -> str:
+    return scenes[0] if len(scenes) == 1 else f"{scenes[0]}+{len(scenes) - 1}"
+
+
 def _yaw(poses: np.ndarray) -> np.ndarray:
     return np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
 
@@ -155,7 +159,8 @@ def segment_metrics(r: dict, method: str) -> dict:
         "duration_s": float((t[-1] - t[0]) * 1e-6),
         "ate_m": m.ate(est, gt, align="se2").rmse_m,
         "ate_first_m": first.rmse_m,
-        "end_drift_pct": 100.0 * float(first.errors_m[-1]) / max(length, 1e-9),
+        # A scene that barely moves has no meaningful drift per distance.
+        "end_drift_pct": 100.0 * float(first.errors_m[-1]) / length if length >= 1.0 else np.nan,
         "rpe_1s_sq": e1,
         "rpe_10m_sq": e10,
         "cpu_ms_per_frame": r[method + "_cpu_ms"],
@@ -189,13 +194,19 @@ def pooled(rows: list[dict]) -> dict:
         "ate_first_m": float(
             np.sqrt(np.sum(frames * np.square([x["ate_first_m"] for x in rows])) / frames.sum())
         ),
-        "end_drift_pct": float(np.average([x["end_drift_pct"] for x in rows], weights=lengths)),
+        "end_drift_pct": _nan_average([x["end_drift_pct"] for x in rows], lengths),
         "rpe_1s_m": float(np.sqrt(np.mean(e1))) if e1.size else float("nan"),
         "rpe_10m_m": float(np.sqrt(np.mean(e10))) if e10.size else float("nan"),
         "cpu_ms_per_frame": float(
             np.average([x["cpu_ms_per_frame"] for x in rows], weights=frames)
         ),
     }
+
+
+def _nan_average(values, weights) -> float:
+    v, w = np.asarray(values, dtype=float), np.asarray(weights, dtype=float)
+    ok = np.isfinite(v)
+    return float(np.average(v[ok], weights=w[ok])) if ok.any() else float("nan")
 
 
 def _public(row: dict) -> dict:
@@ -310,11 +321,11 @@ def evaluate(name: str, dataroot: Path, version: str, scenes: list[str] | None, 
         results = pool.map(run_segment, jobs_list, chunksize=1)
     wall = time.perf_counter() - t
     per_scene = {
-        "+".join(r["scenes"]): {mm: segment_metrics(r, mm) for mm in METHODS} for r in results
+        _label(r["scenes"]): {mm: segment_metrics(r, mm) for mm in METHODS} for r in results
     }
     pool_rows = {mm: pooled([rows[mm] for rows in per_scene.values()]) for mm in METHODS}
     print_table(f"{name}: {dataroot} ({version})", per_scene, pool_rows)
-    heading = {"+".join(r["scenes"]): heading_check(r) for r in results}
+    heading = {_label(r["scenes"]): heading_check(r) for r in results}
     print("\nDoppler heading over each scene (deg): fit, ground truth, error, bound")
     for s, h in heading.items():
         print(
