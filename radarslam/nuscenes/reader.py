@@ -230,6 +230,7 @@ class NuScenesRadar:
                     f"{self.tables.table_dir} ({mine}): a SceneInfo from another dataset or "
                     "reader?"
                 )
+            self.tables.check_scene(row)
             return own
         if not isinstance(name, str):
             raise DataError(
@@ -243,6 +244,7 @@ class NuScenesRadar:
                 f"unknown scene {name!r} in {self.tables.table_dir}; "
                 f"{len(names)} scenes, e.g. {few or 'none'}"
             )
+        self.tables.check_scene(row)  # a broken scene fails when asked for, not the others
         return self.scenes()[row]
 
     def scene_start_us(self, scene: str | SceneInfo) -> int:

@@ -28,7 +28,7 @@ import logging
 import os
 import re
 from collections.abc import Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +153,8 @@ class SmallTables:
     cs_translation: np.ndarray  # (M, 3)
     cs_rotation: np.ndarray  # (M, 4)
     scene_row: dict[str, int]  # scene name -> row
+    #: scene row -> one-line reason, for scenes that cannot be read (see check_scene)
+    scene_problems: dict[int, str] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------------------------
@@ -345,11 +347,14 @@ def _find_record(path: Path, token: bytes) -> dict | None:
     return None
 
 
-def _check_scene_samples(
+def _scene_sample_problems(
     p_scene: Path, p_sample: Path, scenes: list[dict], sample_row: dict, s_scene: np.ndarray
-) -> None:
-    """Every scene has samples, and its first/last sample belong to it."""
+) -> dict[int, str]:
+    """Scene row -> why it cannot be read (no samples, or a first/last sample token that is not
+    its own), for the scenes that have such a problem. Kept per scene: a broken scene must not
+    stop runs on the others, only a run that asks for it."""
     count = np.bincount(s_scene, minlength=len(scenes))
+    out: dict[int, str] = {}
 
     def row_of(tok) -> int | None:
         return sample_row.get(tok) if isinstance(tok, str) else None
@@ -369,12 +374,13 @@ def _check_scene_samples(
                 problems.append(f"{key} {tok!r} belongs to scene {other!r}")
         if count[row] == 0:
             why = f" ({problems[0]})" if problems else ""
-            raise DataError(
+            out[row] = (
                 f"{p_scene}: scene {name!r} has no samples: no record of {p_sample.name} has "
                 f"scene_token {rec['token']!r}{why}"
             )
-        if problems:
-            raise DataError(f"{p_scene}: scene {name!r} {problems[0]}")
+        elif problems:
+            out[row] = f"{p_scene}: scene {name!r} {problems[0]}"
+    return out
 
 
 def _warn_non_unit(
@@ -521,7 +527,7 @@ class NuScenesTables:
                 if j is None:
                     raise DataError(f"{p_sample}: sample {s_token[i]!r} next {t!r} is not a sample")
                 s_next[i] = j
-        _check_scene_samples(p_scene, p_sample, scenes, sample_row, s_scene)
+        scene_problems = _scene_sample_problems(p_scene, p_sample, scenes, sample_row, s_scene)
 
         sensor_channel = {}
         for i, rec in enumerate(sensors):
@@ -574,7 +580,15 @@ class NuScenesTables:
             cs_translation=cs_t,
             cs_rotation=cs_q,
             scene_row=scene_row,
+            scene_problems=scene_problems,
         )
+
+    def check_scene(self, row: int) -> None:
+        """:class:`DataError` when the scene of this row cannot be read (no samples, or a first
+        or last sample token that is not its own)."""
+        why = self.small.scene_problems.get(row)
+        if why is not None:
+            raise DataError(why)
 
     def ego_from_sensor(self, cs_row: int) -> np.ndarray:
         s = self.small

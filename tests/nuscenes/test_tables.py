@@ -215,7 +215,7 @@ def test_scene_without_samples_is_an_error(clone):
     name, first = _move_samples(root, 1, 0)
     t = NuScenesTables(root, VERSION, use_cache=False)
     with pytest.raises(DataError) as exc:
-        _ = t.small
+        t.check_scene(t.small.scene_row[name])
     msg = str(exc.value)
     assert msg.startswith(str(root / VERSION / "scene.json"))
     assert f"scene {name!r} has no samples" in msg and f"first_sample_token {first!r}" in msg
@@ -231,7 +231,7 @@ def test_scene_first_or_last_sample_of_another_scene(clone, key):
     t = NuScenesTables(root, VERSION, use_cache=False)
     match = f"scene {scenes[1]['name']!r} {key} {other!r} belongs to scene {scenes[0]['name']!r}"
     with pytest.raises(DataError, match=match):
-        _ = t.small
+        t.check_scene(1)
 
 
 def test_scene_with_empty_first_sample_token(clone):
@@ -239,7 +239,23 @@ def test_scene_with_empty_first_sample_token(clone):
     _edit_records(root, "scene", lambda rs: rs[2].update(first_sample_token=""))
     t = NuScenesTables(root, VERSION, use_cache=False)
     with pytest.raises(DataError, match=r"scene 'scene-\d+' first_sample_token is empty"):
-        _ = t.small
+        t.check_scene(2)
+
+
+def test_a_broken_scene_fails_only_when_asked_for(clone):
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    root = clone()
+    name, _ = _move_samples(root, 1, 0)
+    reader = NuScenesRadar(root, VERSION, use_cache=False)
+    assert name in [s.name for s in reader.scenes()]  # listed, with the others
+    with pytest.raises(DataError, match=f"scene {name!r} has no samples"):
+        reader.scene(name)
+    with pytest.raises(DataError, match=f"scene {name!r} has no samples"):
+        list(reader.iter_frames(reader.scenes()[1]))
+    # the scene that took its samples is longer now; another one is read as before
+    untouched = json.loads((root / VERSION / "scene.json").read_text())[2]["name"]
+    assert len(list(reader.iter_frames(untouched))) > 0
 
 
 # ---- a neighbour that is not a radar record: the message names the real cause --------------------
