@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -186,14 +187,9 @@ def rigid_problem(pose, tol: float = RIGID_TOLERANCE) -> str | None:
     return None
 
 
-def rigid_problems(poses: np.ndarray, tol: float = RIGID_TOLERANCE) -> tuple[int, str] | None:
-    """:func:`rigid_problem` of an (N, 4, 4) float64 stack, vectorised: ``(index, reason)`` of
-    the first pose that is not rigid, or ``None``."""
-    arr = np.asarray(poses, dtype=np.float64)
-    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
-        raise ValueError(f"expected (N, 4, 4) poses, got shape {arr.shape}")
-    if len(arr) == 0:
-        return None
+def _rigid_deviations(arr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per pose of an (N, 4, 4) stack: (max |R R^T - I|, det R, max bottom-row deviation,
+    all entries finite)."""
     with np.errstate(invalid="ignore", over="ignore"):
         r = arr[:, :3, :3]
         gram = np.einsum("nij,nkj->nik", r, r)
@@ -201,12 +197,74 @@ def rigid_problems(poses: np.ndarray, tol: float = RIGID_TOLERANCE) -> tuple[int
         orth = np.abs(gram).max(axis=(1, 2))
         det = np.einsum("ni,ni->n", r[:, 0], np.cross(r[:, 1], r[:, 2]))
         bottom = np.abs(arr[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1)
-        ok = (orth <= tol) & (np.abs(det - 1.0) <= tol) & (bottom <= tol)
-        ok &= np.isfinite(arr).all(axis=(1, 2))
+    return orth, det, bottom, np.isfinite(arr).all(axis=(1, 2))
+
+
+def _stack(poses) -> np.ndarray:
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise ValueError(f"expected (N, 4, 4) poses, got shape {arr.shape}")
+    return arr
+
+
+def rigid_problems(poses: np.ndarray, tol: float = RIGID_TOLERANCE) -> tuple[int, str] | None:
+    """:func:`rigid_problem` of an (N, 4, 4) float64 stack, vectorised: ``(index, reason)`` of
+    the first pose that is not rigid, or ``None``."""
+    arr = _stack(poses)
+    if len(arr) == 0:
+        return None
+    orth, det, bottom, finite = _rigid_deviations(arr)
+    with np.errstate(invalid="ignore"):
+        ok = (orth <= tol) & (np.abs(det - 1.0) <= tol) & (bottom <= tol) & finite
     if ok.all():
         return None
     i = int(np.argmin(ok))
     return i, rigid_problem(arr[i], tol) or "is not a rigid transform"
+
+
+#: How far a rotation block may be from orthonormal (max |R R^T - I| and |det R - 1|) and still be
+#: read as a rotation printed with few digits, then re-orthonormalised: KITTI files printed with 6
+#: decimals, or poses that went through float32, are off by up to ~1e-3; a block off by more is
+#: scaled or skewed, not rounded.
+REPAIR_TOLERANCE = 0.01
+
+
+@dataclass(frozen=True)
+class RotationRepair:
+    """What :func:`repair_rotations` did: the poses (a copy where any was repaired), how many
+    rotation blocks it re-orthonormalised and the largest deviation among them."""
+
+    poses: np.ndarray
+    count: int = 0
+    worst: float = 0.0
+
+
+def repair_rotations(
+    poses, tol: float = RIGID_TOLERANCE, repair_tol: float = REPAIR_TOLERANCE
+) -> RotationRepair:
+    """Re-orthonormalise (SVD) the rotation blocks of an (N, 4, 4) stack that deviate from a
+    rotation by more than ``tol`` but at most ``repair_tol``; ``ValueError((index, reason))``
+    naming the first pose beyond repair (non-finite, bottom row off by more than ``tol``, a
+    reflection, or a block deviating by more than ``repair_tol``)."""
+    arr = _stack(poses)
+    if len(arr) == 0:
+        return RotationRepair(arr)
+    orth, det, bottom, finite = _rigid_deviations(arr)
+    with np.errstate(invalid="ignore"):
+        dev = np.maximum(orth, np.abs(det - 1.0))
+        rigid = (dev <= tol) & (bottom <= tol) & finite
+        fixable = finite & (bottom <= tol) & (det > 0) & (dev <= repair_tol)
+    if rigid.all():
+        return RotationRepair(arr)
+    if not (rigid | fixable).all():
+        i = int(np.argmin(rigid | fixable))
+        raise ValueError(i, rigid_problem(arr[i], repair_tol) or "is not a rigid transform")
+    idx = np.flatnonzero(~rigid)
+    out = arr.copy()
+    u, _, vt = np.linalg.svd(out[idx, :3, :3])
+    out[idx, :3, :3] = u @ vt  # det(u vt) = +1: det R > 0 and R is near a rotation
+    out[idx, 3] = (0.0, 0.0, 0.0, 1.0)
+    return RotationRepair(out, len(idx), float(dev[idx].max()))
 
 
 def orthonormalize(pose: np.ndarray) -> np.ndarray:

@@ -14,13 +14,14 @@ reference already associated index by index.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from radarslam.errors import DataError
-from radarslam.geometry import rigid_problems
+from radarslam.geometry import repair_rotations
 from radarslam.timestamps import check_timestamps_us
 
 #: Rotation-block tolerance of (N, 4, 4) inputs: the trajectory files' (what read_kitti accepts).
@@ -37,15 +38,27 @@ def to_xy_yaw(poses, what: str = "poses") -> np.ndarray:
     """(N, 3) (x, y, yaw) from (N, 4, 4) poses or an (N, 3) array (returned as float64 copy).
 
     4x4 poses must be rigid (rotation block orthonormal with det +1, bottom row 0 0 0 1, within
-    :data:`POSE_TOLERANCE`): the yaw of a scaled or skewed block means nothing."""
+    :data:`POSE_TOLERANCE`): the yaw of a scaled or skewed block means nothing. Rotation blocks
+    off by up to :data:`~radarslam.geometry.REPAIR_TOLERANCE` (poses printed with few digits,
+    as evo reads them) are re-orthonormalised, with one :class:`UserWarning`."""
     try:
         arr = np.asarray(poses, dtype=np.float64)
     except (TypeError, ValueError):
         raise DataError(f"{what}: poses must be numeric (N, 4, 4) or (N, 3) arrays") from None
     if arr.ndim == 3 and arr.shape[1:] == (4, 4):
-        bad = rigid_problems(arr, POSE_TOLERANCE)
-        if bad is not None:
-            raise DataError(f"{what}: pose {bad[0]} {bad[1]}")
+        try:
+            fixed = repair_rotations(arr, POSE_TOLERANCE)
+        except ValueError as exc:
+            raise DataError(f"{what}: pose {exc.args[0]} {exc.args[1]}") from None
+        if fixed.count:
+            # the same text for the same poses: Python shows it once however many metrics read them
+            warnings.warn(
+                f"{what}: {fixed.count} of {len(arr)} pose(s) have a rotation block off by up to "
+                f"{fixed.worst:.3g} (max |R R^T - I|); re-orthonormalised",
+                UserWarning,
+                stacklevel=2,
+            )
+        arr = fixed.poses
         out = np.column_stack([arr[:, 0, 3], arr[:, 1, 3], np.arctan2(arr[:, 1, 0], arr[:, 0, 0])])
     elif arr.ndim == 2 and arr.shape[1] == 3:
         out = arr.copy()

@@ -13,6 +13,7 @@ shortest round-trip representation, so positions survive a write/read unchanged.
 
 from __future__ import annotations
 
+import logging
 import math
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
@@ -23,7 +24,7 @@ from radarslam.errors import DataError
 from radarslam.geometry import (
     make_transform,
     quat_norm_problem,
-    rigid_problem,
+    repair_rotations,
     rigid_problems,
     rotation_to_quat,
 )
@@ -37,6 +38,8 @@ from radarslam.timestamps import check_timestamps_us
 POSE_TOLERANCE = 1e-3
 
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+
+log = logging.getLogger("radarslam.io")
 
 
 def _check_poses(poses, what: str) -> np.ndarray:
@@ -169,18 +172,38 @@ def write_kitti(path: str | Path, poses) -> None:
 
 
 def read_kitti(path: str | Path) -> np.ndarray:
-    """Read a KITTI pose file -> (N, 4, 4) float64."""
+    """Read a KITTI pose file -> (N, 4, 4) float64.
+
+    Rotation blocks off by more than :data:`POSE_TOLERANCE` but at most
+    :data:`~radarslam.geometry.REPAIR_TOLERANCE` (files printed with 6 decimals) are
+    re-orthonormalised, with one warning for the file; beyond that a :class:`DataError` names
+    the line."""
     path = Path(path)
     poses = []
+    linenos = []
     for lineno, tokens in _data_lines(path):
         if len(tokens) != 12:
             raise DataError(f"{path}:{lineno}: expected 12 values (3x4 pose), got {len(tokens)}")
         pose = np.eye(4)
         pose[:3, :4] = np.asarray(_floats(path, lineno, tokens)).reshape(3, 4)
-        why = rigid_problem(pose, POSE_TOLERANCE)
-        if why is not None:
-            raise DataError(f"{path}:{lineno}: rotation block is not a rotation matrix: pose {why}")
         poses.append(pose)
+        linenos.append(lineno)
     if not poses:
         return np.zeros((0, 4, 4))
-    return np.stack(poses)
+    try:
+        fixed = repair_rotations(np.stack(poses), POSE_TOLERANCE)
+    except ValueError as exc:
+        i, why = exc.args
+        raise DataError(
+            f"{path}:{linenos[i]}: rotation block is not a rotation matrix: pose {why}"
+        ) from None
+    if fixed.count:
+        log.warning(
+            "%s: %d of %d rotation block(s) off by up to %.3g (max |R R^T - I|), as printed with "
+            "few digits; re-orthonormalised",
+            path,
+            fixed.count,
+            len(poses),
+            fixed.worst,
+        )
+    return fixed.poses

@@ -1,4 +1,5 @@
 import copy
+import warnings
 
 import numpy as np
 import pytest
@@ -223,3 +224,55 @@ def test_drift_arguments():
         drift(est, gt, (50.0,), step_frames=0)
     with pytest.raises(DataError, match="segment lengths must be numbers in metres, got 'abc'"):
         drift(est, gt, "abc")
+
+
+def _printed(poses, decimals):
+    """Poses as a file printed with ``decimals`` digits gives them back (rotation blocks no
+    longer exactly orthonormal)."""
+    return np.round(poses, decimals)
+
+
+def test_rounded_rotation_blocks_are_accepted_like_evo_with_one_warning():
+    import evo.main_ape as main_ape
+    from evo.core import metrics as evo_metrics
+    from evo.core import trajectory
+
+    ref = _circle(300)
+    ref_poses = _poses(ref)
+    est_poses = _printed(
+        np.stack([se2_to_matrix(7.0, -3.0, 0.4) @ p for p in _poses(_noisy(ref))]), 3
+    )
+    orth = np.abs(np.einsum("nij,nkj->nik", est_poses[:, :3, :3], est_poses[:, :3, :3]) - np.eye(3))
+    assert 1e-3 < orth.max() <= 0.01  # what the old 1e-3 tolerance refused
+    with pytest.warns(UserWarning, match=r"estimate: \d+ of 300 pose\(s\) have a rotation block"):
+        ours = ate(est_poses, ref_poses, align="se2")
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("default")  # Python's own: each text once per place
+        ate(est_poses, ref_poses, align="first")
+        rpe(est_poses, ref_poses, delta=1, unit="frames")
+        drift(est_poses, ref_poses)
+    assert len(rec) == 1, [str(w.message) for w in rec]
+    t = np.arange(len(ref)) * 0.1
+    res = main_ape.ape(
+        trajectory.PoseTrajectory3D(poses_se3=list(ref_poses), timestamps=t),
+        trajectory.PoseTrajectory3D(poses_se3=list(est_poses), timestamps=t),
+        evo_metrics.PoseRelation.translation_part,
+        align=True,
+        correct_scale=False,
+    )
+    assert ours.rmse_m == pytest.approx(res.stats["rmse"], abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        (lambda r: r * 1.05, r"pose 5 has a non-orthonormal rotation block .*tolerance 0\.01"),
+        (lambda r: r @ np.diag([1.0, 1.0, -1.0]), "pose 5 has a reflection"),
+    ],
+)
+def test_rotation_blocks_beyond_rounding_are_refused(damage, match):
+    ref = _poses(_circle(20))
+    bad = ref.copy()
+    bad[5, :3, :3] = damage(bad[5, :3, :3])
+    with pytest.raises(DataError, match=match):
+        ate(bad, ref)

@@ -198,3 +198,32 @@ def test_read_tum_timestamp_out_of_range_or_not_a_number(tmp_path, stamp, match)
         read_tum(path)
     path.write_text("9.2e12 0 0 0 0 0 0 1\n")  # the largest order of magnitude int64 us holds
     assert read_tum(path)[0].tolist() == [9_200_000_000_000_000_000]
+
+
+def test_kitti_rotations_printed_with_few_digits_are_reorthonormalised_once(tmp_path, caplog):
+    import logging
+
+    _, poses = _se2_poses()
+    path = tmp_path / "few_digits.kitti"
+    printed = poses.copy()
+    printed[::7, :3, :3] *= 1.0015  # |R R^T - I| = 3e-3: beyond the strict 1e-3
+    path.write_text(
+        "".join(" ".join(f"{v:.6f}" for v in p[:3, :4].ravel()) + "\n" for p in printed)
+    )
+    with caplog.at_level(logging.WARNING, logger="radarslam.io"):
+        read = read_kitti(path)
+    assert len(caplog.records) == 1
+    assert caplog.records[0].getMessage().startswith(f"{path}: ")
+    assert "re-orthonormalised" in caplog.text
+    r = read[::7, :3, :3]  # the blocks that were off; the others are as printed (1e-6)
+    np.testing.assert_allclose(
+        np.einsum("nij,nkj->nik", r, r), np.broadcast_to(np.eye(3), r.shape), atol=1e-12
+    )
+    np.testing.assert_allclose(read[:, :3, :3], poses[:, :3, :3], atol=1e-5)
+    np.testing.assert_allclose(read[:, :3, 3], poses[:, :3, 3], atol=1e-3)
+    # a block off by more than rounding is still refused, naming the line
+    lines = path.read_text().splitlines()
+    lines[3] = "1.05 0 0 0 0 1.05 0 0 0 0 1.05 0"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"few_digits\.kitti:4: rotation block is not a rotation"):
+        read_kitti(path)
