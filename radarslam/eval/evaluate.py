@@ -11,6 +11,7 @@ whether a multi-session map is consistent.
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,9 +24,11 @@ from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth
 from radarslam.eval.metrics import align_se2, ate, drift, path_lengths_m, rpe, to_xy_yaw
 from radarslam.io.atomic import write_json_atomic
 from radarslam.io.text import read_text
-from radarslam.io.trajectory import read_tum
+from radarslam.io.trajectory import read_kitti, read_tum
 from radarslam.slam.outputs import check_session_name
 from radarslam.slam.records import read_loops_csv_numbered
+
+log = logging.getLogger("radarslam.eval")
 
 KINDS = ("odometry", "slam")
 _PREFIX = {"slam": "poses_", "odometry": "odometry_", "gt": "gt_"}
@@ -121,7 +124,9 @@ def read_results(results_dir: str | Path) -> ResultsFolder:
     ``run.json`` is written last (and the folder as a whole, see
     :func:`radarslam.slam.outputs.write_results`): a folder without it is incomplete. Files of
     sessions it does not list are not read. Every listed session needs ``poses_<s>.tum`` and
-    ``gt_<s>.tum``; ``odometry_<s>.tum`` is optional.
+    ``gt_<s>.tum``; ``odometry_<s>.tum`` is optional (one warning names a missing one). Where a
+    ``.tum`` file is missing but its ``.kitti`` twin is there, the KITTI poses are read with the
+    timestamps of another TUM file of the session.
     """
     d = Path(results_dir)
     if not d.is_dir():
@@ -149,20 +154,53 @@ def read_results(results_dir: str | Path) -> ResultsFolder:
         except DataError as exc:
             raise DataError(f"{run}: {exc}") from None
     found: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    no_odometry: list[Path] = []
     for s in sessions:
         found[s] = {}
+        kitti_only = []
         for kind, prefix in _PREFIX.items():
             p = d / f"{prefix}{s}.tum"
             if p.is_file():
                 found[s][kind] = read_tum(p)
+            elif p.with_suffix(".kitti").is_file():
+                kitti_only.append((kind, p.with_suffix(".kitti")))
             elif kind != "odometry":  # SLAM poses and ground truth are always written
                 raise DataError(f"{p}: missing (run.json lists session {s!r})")
+            else:
+                no_odometry.append(p)
+        for kind, path in kitti_only:
+            found[s][kind] = _read_kitti_twin(path, s, found[s])
+    if no_odometry:
+        log.warning(
+            "%s: missing; session %r is evaluated without its odometry (%d of %d session(s) "
+            "without)",
+            no_odometry[0],
+            no_odometry[0].stem.removeprefix(_PREFIX["odometry"]),
+            len(no_odometry),
+            len(sessions),
+        )
     return ResultsFolder(
         d,
         sessions,
         found,
         (d / "loops.csv") if (d / "loops.csv").is_file() else None,
         _components(run, meta, sessions),
+    )
+
+
+def _read_kitti_twin(
+    path: Path, session: str, tum: dict[str, tuple[np.ndarray, np.ndarray]]
+) -> tuple[np.ndarray, np.ndarray]:
+    """A KITTI trajectory whose TUM twin is missing: the three trajectories of a session share
+    their timestamps (one pose per key frame), so they are taken from a TUM file of the same
+    session with as many poses."""
+    poses = read_kitti(path)
+    for kind in ("gt", "slam", "odometry"):
+        if kind in tum and len(tum[kind][0]) == len(poses):
+            return tum[kind][0], poses
+    raise DataError(
+        f"{path}: KITTI poses carry no timestamps and no TUM file of session {session!r} has "
+        f"{len(poses)} poses to take them from"
     )
 
 

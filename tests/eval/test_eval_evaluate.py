@@ -119,6 +119,7 @@ def test_eval_errors(tmp_path):
         evaluate_results(tmp_path)
     _results(tmp_path, with_loops=False)
     (tmp_path / "gt_scene-b.tum").unlink()
+    (tmp_path / "gt_scene-b.kitti").unlink()  # else read with the other files' timestamps
     with pytest.raises(DataError, match=r"gt_scene-b\.tum: missing \(run\.json lists session"):
         evaluate_results(tmp_path)
     with pytest.raises(DataError, match="cannot be used in file names"):

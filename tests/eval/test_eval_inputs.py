@@ -68,6 +68,7 @@ def test_run_json_that_is_binary_or_has_empty_components(tmp_path):
 def test_missing_slam_poses_of_a_listed_session_names_the_file(tmp_path):
     _write(tmp_path)
     (tmp_path / "poses_scene-a.tum").unlink()  # odometry_ and gt_ remain
+    (tmp_path / "poses_scene-a.kitti").unlink()  # else read with the TUM files' timestamps
     with pytest.raises(DataError) as err:
         evaluate_results(tmp_path, _cfg())
     assert str(err.value) == (
@@ -137,3 +138,37 @@ def test_unwritable_outputs_are_one_line_errors(tmp_path, case):
     assert isinstance(res.exception, DataError), res.output
     assert re.search(match, str(res.exception)), str(res.exception)
     assert not [p for p in tmp_path.rglob(".*tmp*")]
+
+
+def test_a_missing_odometry_file_is_said_once(tmp_path, caplog):
+    import logging
+
+    _write(tmp_path, names=("scene-a", "scene-b", "scene-c"), loops=False)
+    for name in ("scene-b", "scene-c"):
+        (tmp_path / f"odometry_{name}.tum").unlink()
+        (tmp_path / f"odometry_{name}.kitti").unlink()
+    with caplog.at_level(logging.WARNING, logger="radarslam.eval"):
+        report = evaluate_results(tmp_path, _cfg())
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'odometry_scene-b.tum'}: missing; session 'scene-b' is evaluated without "
+        "its odometry (2 of 3 session(s) without)"
+    ]
+    assert "odometry" in report.per_session["scene-a"]
+    assert "odometry" not in report.per_session["scene-b"]
+
+
+def test_kitti_files_are_read_where_the_tum_twin_is_missing(tmp_path):
+    _write(tmp_path, loops=False)
+    before = evaluate_results(tmp_path, _cfg(), write=False)
+    for stem in ("poses", "odometry"):
+        (tmp_path / f"{stem}_scene-a.tum").unlink()
+    after = evaluate_results(tmp_path, _cfg(), write=False)
+    for kind in ("slam", "odometry"):
+        a = before.per_session["scene-a"][kind].as_dict()
+        b = after.per_session["scene-a"][kind].as_dict()
+        assert a == pytest.approx(b, abs=1e-9)
+    # a KITTI file with a pose more than the others cannot borrow their timestamps
+    kitti = tmp_path / "poses_scene-a.kitti"
+    kitti.write_text(kitti.read_text() + kitti.read_text().splitlines()[-1] + "\n")
+    with pytest.raises(DataError, match=r"poses_scene-a\.kitti: KITTI poses carry no timestamps"):
+        evaluate_results(tmp_path, _cfg(), write=False)
