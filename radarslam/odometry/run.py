@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,55 @@ import numpy as np
 from radarslam.errors import ConfigError, DataError
 from radarslam.odometry.config import OdometryConfig
 from radarslam.types import SceneInfo
+
+log = logging.getLogger("radarslam.odometry")
+
+#: A scene's Doppler is implausible when fewer of its frames than this share have a valid fit
+#: (among frames with enough points for one)...
+MIN_VALID_DOPPLER_SHARE = 0.5
+#: ...or when the fits' inliers are fewer than this share of their points. A static world is
+#: most of what a radar sees in traffic (0.92-0.95 on the synthetic drives); Doppler values
+#: that are noise leave the RANSAC a few percent (0.05 with random values on the same drives).
+MIN_DOPPLER_INLIER_SHARE = 0.3
+
+
+@dataclass
+class DopplerHealth:
+    """The Doppler fits of one scene, to say when they cannot be trusted: the odometry then runs
+    on registration and a constant-velocity guess, and its error grows without a sign."""
+
+    min_points: int = 3
+    frames: int = 0  # frames with enough points for a fit
+    valid: int = 0
+    inliers: int = 0
+    points: int = 0  # points of the valid fits
+
+    def add(self, fit) -> None:
+        if fit is None or fit.num_points < self.min_points:
+            return
+        self.frames += 1
+        if fit.valid:
+            self.valid += 1
+            self.inliers += int(fit.num_inliers)
+            self.points += int(fit.num_points)
+
+    def problem(self) -> str | None:
+        """Why the Doppler of this scene is implausible, or ``None``."""
+        if not self.frames:
+            return None
+        share = self.valid / self.frames
+        if share < MIN_VALID_DOPPLER_SHARE:
+            return (
+                f"only {self.valid} of {self.frames} frames have a valid Doppler fit "
+                f"({share:.0%}; expected at least {MIN_VALID_DOPPLER_SHARE:.0%})"
+            )
+        ratio = self.inliers / self.points if self.points else 0.0
+        if ratio < MIN_DOPPLER_INLIER_SHARE:
+            return (
+                f"the Doppler fits keep only {ratio:.0%} of their points as static-world inliers "
+                f"(expected at least {MIN_DOPPLER_INLIER_SHARE:.0%}; corrupt radial velocities?)"
+            )
+        return None
 
 
 @dataclass
@@ -128,6 +178,7 @@ def run_odometry(
     bar = _progress(progress, infos, reader)
     try:
         for info in infos:
+            health = DopplerHealth(config.doppler.min_points)
             for k, frame in enumerate(reader.iter_frames(info, filters=filters)):
                 if max_frames_per_scene is not None and k >= max_frames_per_scene:
                     break
@@ -138,6 +189,7 @@ def run_odometry(
                     odo.reset()
                     segment += 1
                 res = odo.process(frame)
+                health.add(res.doppler)
                 last_t = frame.timestamp_us
                 if res.key_frame_motion is not None:
                     kf[len(rows["t"])] = (res.key_frame_motion, res.key_frame_covariance)
@@ -157,6 +209,9 @@ def run_odometry(
                     rows[key].append(value)
                 if bar is not None:
                     bar.update(1)
+            why = health.problem()
+            if why is not None:
+                log.warning("scene %s: %s: its odometry is unreliable", info.name, why)
     finally:
         if bar is not None:
             bar.close()

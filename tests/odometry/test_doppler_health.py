@@ -1,0 +1,57 @@
+"""``run_odometry`` says, once per scene, when the Doppler fits are implausible."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+
+import numpy as np
+
+from radarslam.nuscenes.pcd import pcd_bytes, read_pcd
+from radarslam.nuscenes.reader import NuScenesRadar
+from radarslam.odometry.run import DopplerHealth, run_odometry
+
+
+def _garbage_doppler(src, dst):
+    shutil.copytree(src, dst)
+    rng = np.random.default_rng(0)
+    for path in sorted(dst.glob("s*/RADAR_*/*.pcd")):
+        pts = read_pcd(path)
+        for key in ("vx", "vy", "vx_comp", "vy_comp"):
+            pts[key] = rng.uniform(-20.0, 20.0, len(pts))
+        path.write_bytes(pcd_bytes(pts))
+    return dst
+
+
+def test_garbage_doppler_is_said_once_per_scene(tiny_dataroot, tmp_path, caplog):
+    reader = NuScenesRadar(tiny_dataroot, "v1.0-mini", use_cache=False)
+    names = [s.name for s in reader.scenes()]
+    with caplog.at_level(logging.WARNING, logger="radarslam.odometry"):
+        run_odometry(reader, names, progress=False)
+    assert not caplog.records  # the clean drives: no word
+
+    bad = NuScenesRadar(_garbage_doppler(tiny_dataroot, tmp_path / "garbage"), "v1.0-mini")
+    with caplog.at_level(logging.WARNING, logger="radarslam.odometry"):
+        run_odometry(bad, names, progress=False)
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == len(names), messages
+    for name, msg in zip(names, messages, strict=True):
+        assert msg.startswith(f"scene {name}: the Doppler fits keep only ")
+        assert "static-world inliers" in msg and "unreliable" in msg
+
+
+class _Fit:
+    def __init__(self, valid, inliers, points):
+        self.valid, self.num_inliers, self.num_points = valid, inliers, points
+
+
+def test_doppler_health_thresholds():
+    h = DopplerHealth(min_points=3)
+    for _ in range(10):
+        h.add(_Fit(True, 80, 100))
+    h.add(_Fit(False, 0, 2))  # too few points for a fit: not counted
+    assert h.problem() is None
+    for _ in range(11):
+        h.add(_Fit(False, 0, 50))
+    assert h.problem().startswith("only 10 of 21 frames have a valid Doppler fit")
+    assert DopplerHealth().problem() is None  # no frame with points: nothing to say
