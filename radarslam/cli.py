@@ -92,13 +92,33 @@ def _usage_error_line(exc) -> str:
     return f"error: {msg}{where}"
 
 
+def _exit_interrupted() -> None:
+    """``interrupted`` on stderr, exit status 130. What is left to do then is the interpreter's
+    shutdown (the exit handlers, multiprocessing's last join among them): a further Ctrl-C
+    there would only print "Exception ignored" tracebacks, so the first exit handler to run
+    ignores it from then on."""
+    import atexit
+    import signal
+
+    def ignore_ctrl_c() -> None:
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        except ValueError:  # not the main thread
+            pass
+
+    atexit.register(ignore_ctrl_c)  # registered last, run first
+    print("interrupted", file=sys.stderr)
+    sys.exit(130)
+
+
 def main() -> None:
     """Console entry point: user errors become one line on stderr and exit status 2.
 
     Usage errors (a bad option value, an unknown command or option, a missing option), a
     :class:`RadarSlamError` raised by a command and an OSError no command turned into one are
     each printed as one ``error:`` line; an interruption (Ctrl-C or SIGTERM) prints
-    ``interrupted`` and exits with status 130.
+    ``interrupted`` and exits with status 130, also where the interrupt surfaced as another
+    exception (a compiled module whose import was cut short raises ImportError from it).
     """
     _install_sigterm_handler()
     try:
@@ -109,26 +129,31 @@ def main() -> None:
     except _click_exceptions.ClickException as exc:
         print(_usage_error_line(exc), file=sys.stderr)
         sys.exit(2)
-    except typer.Abort:  # end of input at a prompt
+    except typer.Abort as exc:  # end of input at a prompt
+        if _was_interrupted(exc):
+            _exit_interrupted()
         print("aborted", file=sys.stderr)
         sys.exit(1)
-    except RadarSlamError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        sys.exit(130)
+        _exit_interrupted()
     except SystemExit as exc:
         if exc.code == 130 and _was_interrupted(exc):
-            print("interrupted", file=sys.stderr)
+            _exit_interrupted()
         raise
-    except OSError as exc:
-        where = f"{exc.filename}: " if exc.filename is not None else ""
-        print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
-        sys.exit(2)
+    except Exception as exc:
+        if _was_interrupted(exc):
+            _exit_interrupted()
+        if isinstance(exc, RadarSlamError):
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
+        if isinstance(exc, OSError):
+            where = f"{exc.filename}: " if exc.filename is not None else ""
+            print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
+            sys.exit(2)
+        raise
     # typer's non-standalone mode returns an exit code instead of exiting: 130 is its
     # KeyboardInterrupt, 0 a --help
     if isinstance(code, int) and not isinstance(code, bool) and code != 0:
         if code == 130:
-            print("interrupted", file=sys.stderr)
+            _exit_interrupted()
         sys.exit(code)

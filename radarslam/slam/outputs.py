@@ -8,7 +8,7 @@
       odometry_<session>.tum/.kitti odometry-only estimate, same key frames
       gt_<session>.tum / .kitti     ground truth at the same timestamps
       loops.csv                     every loop candidate, accepted or rejected, with the reason
-      map.ply                       static map (open3d PLY)
+      map.ply                       static map (binary PLY, as open3d writes it)
       plots/map_bev.png             the map in bird's-eye view
       pose_graph.g2o                (optional) the final graph
       metrics.json, plots/*.png     written by ``radarslam eval RESULTS_DIR``
@@ -30,11 +30,11 @@ import numpy as np
 from radarslam.errors import DataError
 from radarslam.io.atomic import (
     atomic_folder,
-    atomic_path,
     check_output_folder,
     write_json_atomic,
     write_text_atomic,
 )
+from radarslam.io.ply import write_ply_points
 from radarslam.io.trajectory import write_kitti, write_tum
 from radarslam.slam.map import StaticMap
 from radarslam.slam.records import LoopCandidate, write_loops_csv
@@ -94,18 +94,15 @@ def write_session(results_dir: str | Path, result: SessionResult) -> None:
 
 
 def write_map_ply(path: str | Path, static_map: StaticMap) -> None:
-    """The static map as PLY via open3d (points; colours encode RCS when known)."""
-    import open3d as o3d
-
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(static_map.xyz, float)))
+    """The static map as binary PLY (points; colours encode RCS when known)."""
+    xyz = np.asarray(static_map.xyz, float)
+    colors = None
     rcs = np.asarray(static_map.rcs, dtype=np.float64)
     if len(rcs) and np.any(np.isfinite(rcs)):
         lo, hi = np.nanpercentile(rcs, [2, 98])
         v = np.clip((np.nan_to_num(rcs, nan=lo) - lo) / max(hi - lo, 1e-9), 0, 1)
-        pc.colors = o3d.utility.Vector3dVector(np.column_stack([v, 0.5 * np.ones_like(v), 1 - v]))
-    with atomic_path(path) as tmp:
-        if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
-            raise DataError(f"{path}: open3d could not write the map")
+        colors = np.column_stack([v, 0.5 * np.ones_like(v), 1 - v])
+    write_ply_points(path, xyz, colors)
 
 
 def check_results_dir(results_dir: str | Path) -> Path:
