@@ -259,6 +259,7 @@ CASES: list[tuple[str, Damage, str, str]] = [
             ("registration.min_sigma_m", "inf", "Input should be a finite number"),
             ("registration.voxel_size_m", "inf", "Input should be a finite number"),
             ("doppler.noise_floor_mps", "inf", "Input should be a finite number"),
+            ("doppler.noise_floor_mps", "1e300", "Input should be less than or equal to 1000"),
             ("doppler.inlier_threshold_mps", "nan", "Input should be a finite number"),
             ("doppler.seed", "-1", "Input should be greater than or equal to 0"),
         ]

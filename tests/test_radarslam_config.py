@@ -71,6 +71,7 @@ def test_every_settings_model_refuses_non_finite_floats():
         "odometry.registration.min_sigma_m=inf",
         "odometry.registration.voxel_size_m=.inf",
         "odometry.doppler.noise_floor_mps=inf",
+        "odometry.doppler.noise_floor_mps=1e300",
         "odometry.doppler.inlier_threshold_mps=nan",
         "odometry.fusion.process_noise=[0.2, 0.2, .inf]",
         "backend.static_map.voxel_size_m=inf",

@@ -101,24 +101,24 @@ class DopplerConfig(StrictModel):
 
     #: Wider than fit_sensor_velocity's 0.2 m/s default: azimuth noise adds |v| * sin(az) * d_az to
     #: the Doppler residual at speed, and a tight threshold then truncates (and biases) the fit.
-    inlier_threshold_mps: float = Field(0.4, gt=0)
+    inlier_threshold_mps: float = Field(0.4, gt=0, le=1000)
     #: Paper-style relative threshold tau: inlier if |residual| < tau * |v_sensor| (floored at
     #: ``inlier_threshold_mps``). None = absolute threshold only.
-    relative_threshold: float | None = Field(None, gt=0)
-    static_speed_mps: float = Field(1.0, ge=0)
+    relative_threshold: float | None = Field(None, gt=0, le=10)
+    static_speed_mps: float = Field(1.0, ge=0, le=1000)
     static_fraction: float = Field(0.5, ge=0, le=1)
     static_velocity: Literal["zero", "refit"] = "zero"
     iterations: int = Field(64, ge=1, le=10000)
     min_points: int = Field(3, ge=2)
-    min_range_m: float = Field(0.5, ge=0)
+    min_range_m: float = Field(0.5, ge=0, le=1000)
     #: Drop points whose Doppler is ambiguous (``ambig_state != 3``): their v_r may be aliased.
     require_unambiguous: bool = True
-    noise_floor_mps: float = Field(0.05, gt=0)
+    noise_floor_mps: float = Field(0.05, gt=0, le=1000)
     #: Non-holonomic prior on the rear axle's lateral velocity (m/s, None = off): a car's rear axle
     #: does not slide sideways, which makes the yaw rate observable from a single radar.
-    lateral_velocity_sigma_mps: float | None = Field(None, gt=0)
+    lateral_velocity_sigma_mps: float | None = Field(None, gt=0, le=1000)
     #: Weak prior keeping an unobservable yaw rate at 0 (rad/s).
-    yaw_rate_prior_sigma_radps: float = Field(10.0, gt=0)
+    yaw_rate_prior_sigma_radps: float = Field(10.0, gt=0, le=1000)
     seed: int = 0
 
 
