@@ -262,6 +262,11 @@ CASES: list[tuple[str, Damage, str, str]] = [
             ("doppler.noise_floor_mps", "1e300", "Input should be less than or equal to 1000"),
             ("doppler.inlier_threshold_mps", "nan", "Input should be a finite number"),
             ("doppler.seed", "-1", "Input should be greater than or equal to 0"),
+            (
+                "fusion.icp_along_track_sigma_fraction",
+                "1e300",
+                "Input should be less than or equal to 1000",
+            ),
         ]
     ],
     (

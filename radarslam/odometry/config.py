@@ -123,7 +123,7 @@ class FusionConfig(StrictModel):
     #: step comes from Doppler and the lateral and yaw corrections from ICP. That gives scale
     #: 0.9997 and drift 0.179 -> 0.146 % (city) and 0.246 -> 0.219 % (long drive). 0.3 and 3 gave
     #: the same results.
-    icp_along_track_sigma_fraction: float | None = Field(1.0, gt=0)
+    icp_along_track_sigma_fraction: float | None = Field(1.0, gt=0, le=1000)
     #: Standard deviation added to every Doppler twist (m/s, m/s, rad/s), after the scaling
     #: above. On real radar the fit's residual covariance misses errors that persist across
     #: frames (velocities quantised at 0.25 m/s, a target set seen for several frames, mounting
