@@ -30,13 +30,15 @@ def eval_command(
     RESULTS_DIR/metrics.json."""
     from radarslam.config import CONFIG_DIR, load_config
     from radarslam.eval.evaluate import EvalConfig, evaluate_results
+    from radarslam.io.atomic import atomic_batch
 
     path = config
     if path is None and (CONFIG_DIR / "eval" / "default.yaml").is_file():
         path = CONFIG_DIR / "eval" / "default.yaml"
     cfg = load_config(EvalConfig, path, list(override or []))
     cfg.plots = plots
-    report = evaluate_results(results_dir, cfg)
+    with atomic_batch():  # metrics.json and the plots replace the previous ones together
+        report = evaluate_results(results_dir, cfg)
     print_report(report, results_dir, cfg)
 
 

@@ -279,8 +279,14 @@ def trajectory_metrics(
 
 
 def evaluate_results(
-    results_dir: str | Path, config: EvalConfig | None = None, write: bool = True
+    results_dir: str | Path,
+    config: EvalConfig | None = None,
+    write: bool = True,
+    name: str | Path | None = None,
 ) -> EvalReport:
+    """Metrics of a results folder, written into it as ``metrics.json`` and ``plots/*.png``
+    (``write``). ``name``: the folder's path to report, when it is evaluated before being moved
+    there (default ``results_dir``)."""
     cfg = config or EvalConfig()
     folder = read_results(results_dir)
     per_session: dict[str, dict[str, TrajectoryMetrics]] = {}
@@ -357,7 +363,7 @@ def evaluate_results(
             labels=[f"{folder.loops_path}:{line}" for line, _ in numbered],
         )
     report = EvalReport(
-        results_dir=folder.path,
+        results_dir=folder.path if name is None else Path(name),
         sessions=folder.sessions,
         per_session=per_session,
         run=run,

@@ -1,18 +1,28 @@
 """Atomic file writes: write to a temporary sibling, fsync, then rename over the target.
 
 An interrupted run therefore leaves either the old file or the new one, never half of one.
-:func:`atomic_folder` does the same for a whole folder of outputs.
+:func:`atomic_folder` does the same for a whole folder of outputs, and :func:`atomic_batch` for
+several files that belong together. The final renames run with Ctrl-C and SIGTERM held back
+(:func:`interrupts_deferred`): an interrupt there takes effect once they are done.
 A target that cannot be written (its folder is a file, it is a folder, no permission, disk full)
 raises :class:`WriteError`, a :class:`~radarslam.errors.DataError` naming the target.
+
+Temporary names carry the writing process's id, ``.<target name>.<pid>-<random>.tmp`` (a
+folder moved aside: ``....old``): what a process killed hard (``kill -9``) leaves behind is
+recognised as stale once that process is gone, and removed by the next write of the same folder
+(:func:`remove_stale_temporaries`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import json
 import os
+import re
 import secrets
 import shutil
+import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -72,6 +82,177 @@ def folder_error(folder: str | Path, exc: OSError) -> str:
     return exc.strerror or type(exc).__name__
 
 
+def _temp_prefix(name: str) -> str:
+    """Prefix of a temporary sibling of ``name`` written by this process."""
+    return f".{name}.{os.getpid()}-"
+
+
+#: ``.<name>.<pid>-<random>.tmp`` (optionally followed by the target's suffix, for libraries
+#: that choose a format by it) or ``.<name>.<pid>-<random>.old``.
+_TEMP_NAME = re.compile(
+    r"^\.(?P<name>.+)\.(?P<pid>\d+)-[A-Za-z0-9_]+\.(?P<kind>tmp|old)(?:\.[^.]+)?$"
+)
+
+
+def _process_exists(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):  # another user's: it runs
+        return True
+    return True
+
+
+def remove_stale_temporaries(folder: str | Path, names: set[str] | None = None) -> list[Path]:
+    """Remove the temporary files and folders in ``folder`` that a process no longer running
+    left behind (killed before it could clean up), for the targets ``names`` (None: all).
+
+    A previous results folder moved aside (``.<name>.<pid>-*.old``) while its target ``<name>``
+    is missing is what a kill between the two renames of a swap leaves: it is moved back, the
+    last complete folder. Returns what was removed or restored. Best effort: what cannot be
+    removed stays."""
+    folder = Path(folder)
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return []
+    stale = []
+    for e in entries:
+        m = _TEMP_NAME.match(e.name)
+        if m is None or (names is not None and m["name"] not in names):
+            continue
+        if not _process_exists(int(m["pid"])):
+            stale.append((e, m))
+    done = []
+    restored = set()
+    for e, m in sorted(stale, key=lambda em: _mtime(em[0]), reverse=True):
+        target = folder / m["name"]
+        if m["kind"] == "old" and m["name"] not in restored and not os.path.lexists(target):
+            with contextlib.suppress(OSError):
+                os.rename(e.path, target)
+                restored.add(m["name"])
+                done.append(target)
+                continue
+        if e.is_dir(follow_symlinks=False):
+            shutil.rmtree(e.path, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                os.unlink(e.path)
+        done.append(Path(e.path))
+    return done
+
+
+def _mtime(entry: os.DirEntry) -> float:
+    try:
+        return entry.stat(follow_symlinks=False).st_mtime
+    except OSError:
+        return 0.0
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold back Ctrl-C and SIGTERM for the block: one that arrives meanwhile is delivered
+    once it ends (a KeyboardInterrupt then, after the work). For the few renames that put
+    finished outputs in place, which must not stop half-way. Python handles signals in the main
+    thread only, so elsewhere this does nothing; a handler not set from Python is left alone."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+
+    def hold(signum, frame) -> None:
+        held.append(signum)
+
+    previous = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) is not None:
+                previous[sig] = signal.signal(sig, hold)
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(held):
+            signal.raise_signal(sig)
+
+
+#: Renames (temporary file, target) waiting for the end of the innermost :func:`atomic_batch`.
+_BATCH: contextvars.ContextVar[list[tuple[Path, Path]] | None] = contextvars.ContextVar(
+    "atomic_batch", default=None
+)
+
+
+def _put_in_place(tmp: Path | str, path: Path) -> None:
+    """Rename a finished temporary file onto its target, now or at the end of the batch."""
+    pending = _BATCH.get()
+    if pending is not None:
+        pending.append((Path(tmp), path))
+        return
+    os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def atomic_batch() -> Iterator[None]:
+    """Files written atomically in the block (:func:`atomic_open`, the ``write_*_atomic``
+    functions, :func:`atomic_path`) replace their targets together when it ends, with
+    interrupts held back: an interrupt or error at any point leaves all the old files or all the
+    new ones (``radarslam eval``'s metrics and plots). Inside the block a target still reads
+    as the old file. Stale temporary files of the same targets are removed at the end. A batch
+    inside a batch is part of the outer one."""
+    if _BATCH.get() is not None:
+        yield
+        return
+    pending: list[tuple[Path, Path]] = []
+    token = _BATCH.set(pending)
+    try:
+        yield
+    except BaseException:
+        _BATCH.reset(token)
+        _unlink_all(tmp for tmp, _ in pending)
+        raise
+    _BATCH.reset(token)
+    done = 0
+    try:
+        with interrupts_deferred():
+            for tmp, path in pending:
+                try:
+                    os.replace(tmp, path)
+                except OSError as exc:
+                    raise cannot_write(path, exc) from None
+                done += 1
+            for parent in dict.fromkeys(path.parent for _, path in pending):
+                _fsync_folder(parent)
+    finally:
+        _unlink_all(tmp for tmp, _ in pending[done:])
+    by_folder: dict[Path, set[str]] = {}
+    for _, path in pending:
+        by_folder.setdefault(path.parent, set()).add(path.name)
+    for parent, names in by_folder.items():
+        remove_stale_temporaries(parent, names)
+
+
+def _unlink_all(paths) -> None:
+    for tmp in paths:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make the renames in ``folder`` durable (best effort)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
 def _make_parent(path: Path) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -85,10 +266,19 @@ def atomic_open(path: str | Path, mode: str = "w", encoding: str | None = "utf-8
     path = Path(path)
     _make_parent(path)
     binary = "b" in mode
+    fd = tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    except OSError as exc:
-        raise cannot_write(path, exc) from None
+        with interrupts_deferred():  # the file and its name, which the cleanup needs, together
+            fd, tmp = tempfile.mkstemp(
+                prefix=_temp_prefix(path.name), suffix=".tmp", dir=path.parent
+            )
+    except BaseException as exc:
+        if tmp is not None:
+            os.close(fd)
+            os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise cannot_write(path, exc) from None
+        raise
     try:
         with contextlib.suppress(OSError):  # mkstemp makes 0600; outputs get the usual mode
             os.fchmod(fd, file_mode())
@@ -100,7 +290,7 @@ def atomic_open(path: str | Path, mode: str = "w", encoding: str | None = "utf-8
             except OSError as exc:
                 raise cannot_write(path, exc) from None
         try:
-            os.replace(tmp, path)
+            _put_in_place(tmp, path)
         except OSError as exc:
             raise cannot_write(path, exc) from None
     except BaseException:
@@ -136,7 +326,9 @@ def atomic_path(path: str | Path) -> contextlib.AbstractContextManager[Path]:
 class _AtomicPath(contextlib.AbstractContextManager):
     def __init__(self, path: Path):
         self.path = path
-        self.tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+        # the target's suffix last: savefig and open3d choose the format by it
+        name = f"{_temp_prefix(path.name)}{secrets.token_hex(4)}.tmp{path.suffix}"
+        self.tmp = path.with_name(name)
 
     def __enter__(self) -> Path:
         _make_parent(self.path)
@@ -145,7 +337,7 @@ class _AtomicPath(contextlib.AbstractContextManager):
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
             try:
-                os.replace(self.tmp, self.path)
+                _put_in_place(self.tmp, self.path)
             except OSError as err:
                 with contextlib.suppress(OSError):
                     os.unlink(self.tmp)
@@ -167,13 +359,24 @@ def atomic_folder(target: str | Path) -> Iterator[Path]:
     """
     target = Path(target)
     _make_parent(target)
+    remove_stale_temporaries(target.parent, {target.name})
+    tmp = None
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
-    except OSError as exc:
-        raise cannot_write(target, exc) from None
+        with interrupts_deferred():  # the folder and its name, which the cleanup needs, together
+            tmp = Path(
+                tempfile.mkdtemp(prefix=_temp_prefix(target.name), suffix=".tmp", dir=target.parent)
+            )
+    except BaseException as exc:
+        if tmp is not None:
+            os.rmdir(tmp)
+        if isinstance(exc, OSError):
+            raise cannot_write(target, exc) from None
+        raise
     try:
         with contextlib.suppress(OSError):
             os.chmod(tmp, folder_mode())  # mkdtemp makes 0700; outputs get the usual mode
+        # files inside go in place at once: the folder as a whole is the atomic step
+        outer_batch = _BATCH.set(None)
         try:
             yield tmp
         except DataError as exc:  # name the file as the user knows it, not the temporary one
@@ -183,6 +386,8 @@ def atomic_folder(target: str | Path) -> Iterator[Path]:
             if isinstance(exc, WriteError):
                 raise WriteError(msg, exc.errno) from None
             raise DataError(msg) from None
+        finally:
+            _BATCH.reset(outer_batch)
         try:
             replace_folder(tmp, target)
         except OSError as exc:
@@ -193,37 +398,74 @@ def atomic_folder(target: str | Path) -> Iterator[Path]:
 
 
 def replace_folder(new: str | Path, target: str | Path) -> None:
-    """Move folder ``new`` onto ``target`` (an existing one is renamed aside, then deleted)."""
+    """Move folder ``new`` onto ``target``, interrupts held back (:func:`interrupts_deferred`).
+
+    Where the system can (Linux, most local file systems), the two folders are exchanged in one
+    step, so that even ``kill -9`` leaves the old folder or the new one; elsewhere the old one is
+    renamed aside first (a kill between the two renames leaves it aside, and the next write
+    moves it back: :func:`remove_stale_temporaries`). The old folder is deleted afterwards."""
     new, target = Path(new), Path(target)
-    old = None
-    if target.exists():
-        old = target.with_name(f".{target.name}.old-{os.getpid()}-{secrets.token_hex(4)}")
-        os.rename(target, old)
+    aside = None  # the previous folder, once out of the way
     try:
-        os.rename(new, target)
-    except BaseException:
-        if old is not None:
-            os.rename(old, target)
-        raise
-    with contextlib.suppress(OSError):  # make the renames durable
-        fd = os.open(target.parent, os.O_RDONLY)
+        with interrupts_deferred():
+            if os.path.lexists(target):
+                if _exchange(new, target):
+                    aside = new
+                else:
+                    moved = target.with_name(
+                        f"{_temp_prefix(target.name)}{secrets.token_hex(4)}.old"
+                    )
+                    os.rename(target, moved)
+                    try:
+                        os.rename(new, target)
+                    except BaseException:
+                        os.rename(moved, target)
+                        raise
+                    aside = moved
+            else:
+                os.rename(new, target)
+            _fsync_folder(target.parent)
+    finally:
+        if aside is not None:
+            shutil.rmtree(aside, ignore_errors=True)
+
+
+_RENAME_EXCHANGE = 2  # renameat2(2) flag
+_AT_FDCWD = -100
+_renameat2: Any = None
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap paths ``a`` and ``b`` atomically (Linux renameat2 with RENAME_EXCHANGE). False
+    where it cannot be done (another system, an old C library or kernel, a file system without
+    it, or any other failure, which the plain renames then report)."""
+    global _renameat2
+    if not sys.platform.startswith("linux"):
+        return False
+    if _renameat2 is None:
+        import ctypes
+
         try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+            _renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+        except (OSError, AttributeError):
+            _renameat2 = False
+    if _renameat2 is False:
+        return False
+    return _renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0
 
 
 def check_output_folder(folder: str | Path, is_output: Callable[[Path], bool], what: str) -> Path:
     """Fail before any work when ``folder`` cannot be written by :func:`atomic_folder`: a file is
     in the way, its parent cannot be created or written, it is the current folder (or holds it),
-    or it holds an entry that ``is_output`` does not recognise as a ``what`` (a replaced folder
-    loses everything in it). Creates the parent folder; returns the folder to write (a symbolic
-    link resolved, so that the link's target is what gets replaced)."""
+    it cannot be replaced (a mount point, or not writable), or it holds an entry that
+    ``is_output`` does not recognise as a ``what`` (a replaced folder loses everything in it).
+    Creates the parent folder and removes what killed earlier runs left beside the folder
+    (:func:`remove_stale_temporaries`); returns the folder to write (a symbolic link resolved,
+    so that the link's target is what gets replaced)."""
     d = Path(folder)
     if d.is_symlink() or d.name in ("", ".", ".."):  # "." and ".." have no usable name
         d = d.resolve()
+    remove_stale_temporaries(d.parent, {d.name})
     if d.is_dir():
         try:
             cwd = Path.cwd().resolve()
@@ -231,6 +473,11 @@ def check_output_folder(folder: str | Path, is_output: Callable[[Path], bool], w
             cwd = None
         if cwd is not None and (d.resolve() == cwd or d.resolve() in cwd.parents):
             raise DataError(f"{d}: cannot replace the current folder or one holding it")
+        if os.path.ismount(d):
+            raise DataError(
+                f"{d}: cannot replace results folder (it is a mount point, which cannot be "
+                "renamed; a results folder is replaced as a whole): choose a folder inside it"
+            )
         try:
             other = sorted(e.name for e in d.iterdir() if not is_output(e))
         except OSError as exc:
@@ -241,11 +488,14 @@ def check_output_folder(folder: str | Path, is_output: Callable[[Path], bool], w
                 f"{d}: holds {other[0]!r}{more}, which is not a {what}; a results folder is "
                 "replaced as a whole: choose a new or empty folder"
             )
+        if not os.access(d, os.W_OK | os.X_OK):  # its files could not be deleted once replaced
+            raise DataError(f"{d}: cannot replace results folder (not writable)")
     elif d.exists():
         raise DataError(f"{d}: cannot create results folder ({d} is a file, not a folder)")
     try:
         d.parent.mkdir(parents=True, exist_ok=True)
-        os.rmdir(tempfile.mkdtemp(prefix=f".{d.name}.", suffix=".probe", dir=d.parent))
+        with interrupts_deferred():  # never leave the probe behind
+            os.rmdir(tempfile.mkdtemp(prefix=_temp_prefix(d.name), suffix=".tmp", dir=d.parent))
     except OSError as exc:
         raise DataError(f"{d}: cannot create results folder ({folder_error(d, exc)})") from None
     return d

@@ -123,6 +123,23 @@ def run_slam(
         ],
         "loops": {"candidates": len(result.loops), "accepted": len(result.accepted_loops)},
     }
+    console.print(
+        f"{t.frames} frames, {t.key_frames} key frames, {len(result.accepted_loops)} loops "
+        f"accepted of {len(result.loops)} verified, {len(result.components)} map component(s); "
+        f"{result.duration_s:.0f} s of radar in {wall_s:.1f} s "
+        f"({timing['real_time_factor']:.1f}x real time)"
+    )
+    reports = []
+    finish = None
+    if evaluate:
+        from radarslam.config import CONFIG_DIR, load_config
+        from radarslam.eval.evaluate import EvalConfig, evaluate_results
+
+        eval_cfg = load_config(EvalConfig, CONFIG_DIR / "eval" / "default.yaml")
+
+        def finish(folder: Path) -> None:  # metrics and plots join the folder before it is out
+            reports.append(evaluate_results(folder, eval_cfg, name=out))
+
     write_results(
         out,
         result.sessions,
@@ -131,21 +148,12 @@ def run_slam(
         config_yaml=dump_config(config),
         components=[c.sessions for c in result.components],  # the anchored map first
         extra_json={"timing.json": timing},
+        finish=finish,
     )
-    console.print(
-        f"{t.frames} frames, {t.key_frames} key frames, {len(result.accepted_loops)} loops "
-        f"accepted of {len(result.loops)} verified, {len(result.components)} map component(s); "
-        f"{result.duration_s:.0f} s of radar in {wall_s:.1f} s "
-        f"({timing['real_time_factor']:.1f}x real time)"
-    )
-    if evaluate:
-        from radarslam.config import CONFIG_DIR, load_config
+    if reports:
         from radarslam.eval.commands import print_report
-        from radarslam.eval.evaluate import EvalConfig, evaluate_results
 
-        eval_cfg = load_config(EvalConfig, CONFIG_DIR / "eval" / "default.yaml")
-        report = evaluate_results(out, eval_cfg)
-        print_report(report, out, eval_cfg)
+        print_report(reports[0], out, eval_cfg)
     return result
 
 

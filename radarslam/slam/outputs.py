@@ -21,7 +21,7 @@ leaves the previous one) and a re-run leaves no file of the previous run behind.
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -126,12 +126,15 @@ def write_results(
     plots: bool = True,
     components: Sequence[Sequence[str]] | None = None,
     extra_json: Mapping[str, object] | None = None,
+    finish: Callable[[Path], None] | None = None,
 ) -> Path:
     """Write everything a run produced; ``radarslam eval`` reads it back.
 
     The folder is written as a whole (see the module docstring): an existing ``results_dir`` is
     replaced, and only when it is a results folder (:func:`check_results_dir`). ``extra_json``:
-    more files, name -> JSON object (e.g. ``timing.json``).
+    more files, name -> JSON object (e.g. ``timing.json``). ``finish(folder)`` runs last on the
+    folder before it replaces ``results_dir`` (``radarslam run`` evaluates it there, so that an
+    interrupted evaluation leaves the previous folder, not a new one without its metrics).
     """
     names = [check_session_name(s.name) for s in sessions]
     if len(set(names)) != len(names):
@@ -141,6 +144,8 @@ def write_results(
         _write_contents(tmp, sessions, names, loops, static_map, config_yaml, plots, components)
         for name, obj in (extra_json or {}).items():
             write_json_atomic(tmp / name, obj)
+        if finish is not None:
+            finish(tmp)
     return Path(results_dir)
 
 

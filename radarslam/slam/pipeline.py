@@ -727,6 +727,8 @@ class SlamPipeline:
         results, 2.5 s more work (torch and the weights loaded twice), no gain on 2 cores."""
         import multiprocessing as mp
 
+        from radarslam.io.atomic import interrupts_deferred
+
         ctx = mp.get_context("fork")
         # Room for about 250 key frames (~40 MB): the key-frame side's work comes in bursts
         # (sessions linking, catch-up searches), and a short queue would stall the odometry
@@ -751,7 +753,10 @@ class SlamPipeline:
         try:
             for proc in procs.values():
                 proc.daemon = True
-                proc.start()
+                # Ctrl-C inside fork()'s at-fork handlers would be printed as "Exception
+                # ignored" and lost: it waits until the helper runs
+                with interrupts_deferred():
+                    proc.start()
             self._load_recognizer()  # while the data is read and the odometry starts
             with _one_torch_thread() as all_threads:
                 self._consume(infos, bar, procs, messages, finished, all_threads)
