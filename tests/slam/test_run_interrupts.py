@@ -137,3 +137,26 @@ def test_a_read_only_mount_point_as_out_fails_before_the_run(tiny_dataroot, tmp_
         "renamed; a results folder is replaced as a whole): choose a folder inside it"
     ]
     assert took < 5.0  # no SLAM run first
+
+
+def test_what_a_run_killed_hard_leaves_a_rerun_removes(tiny_dataroot, previous_results, tmp_path):
+    out = tmp_path / "res"
+    shutil.copytree(previous_results, out)
+    before = _snapshot(out)
+    proc = subprocess.Popen(
+        _run(tiny_dataroot, out), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while not any(tmp_path.glob(".res.*.tmp/run.json")):  # the new folder, before the swap
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.002)
+        proc.kill()
+    finally:
+        proc.kill()
+        proc.wait()
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left[-1] == "res" and len(left) == 2 and left[0].startswith(f".res.{proc.pid}-")
+    assert _snapshot(out) == before
+    subprocess.run(_run(tiny_dataroot, out, "--no-evaluate"), check=True, capture_output=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
