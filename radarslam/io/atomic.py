@@ -101,7 +101,7 @@ def _process_exists(pid: int) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except (PermissionError, OSError):  # another user's: it runs
+    except OSError:  # another user's (no permission to signal it): it runs
         return True
     return True
 
@@ -127,13 +127,11 @@ def remove_stale_temporaries(folder: str | Path, names: set[str] | None = None) 
         if not _process_exists(int(m["pid"])):
             stale.append((e, m))
     done = []
-    restored = set()
-    for e, m in sorted(stale, key=lambda em: _mtime(em[0]), reverse=True):
+    for e, m in sorted(stale, key=lambda em: _mtime(em[0]), reverse=True):  # newest first
         target = folder / m["name"]
-        if m["kind"] == "old" and m["name"] not in restored and not os.path.lexists(target):
+        if m["kind"] == "old" and not os.path.lexists(target):
             with contextlib.suppress(OSError):
                 os.rename(e.path, target)
-                restored.add(m["name"])
                 done.append(target)
                 continue
         if e.is_dir(follow_symlinks=False):
@@ -201,10 +199,11 @@ def _put_in_place(tmp: Path | str, path: Path) -> None:
 def atomic_batch() -> Iterator[None]:
     """Files written atomically in the block (:func:`atomic_open`, the ``write_*_atomic``
     functions, :func:`atomic_path`) replace their targets together when it ends, with
-    interrupts held back: an interrupt or error at any point leaves all the old files or all the
-    new ones (``radarslam eval``'s metrics and plots). Inside the block a target still reads
-    as the old file. Stale temporary files of the same targets are removed at the end. A batch
-    inside a batch is part of the outer one."""
+    interrupts held back: an interrupt at any point, or an error in the block, leaves all the
+    old files or all the new ones (``radarslam eval``'s metrics and plots; only a rename that
+    fails while they are put in place, which a folder swap would avoid, can leave some of each).
+    Inside the block a target still reads as the old file. Stale temporary files of the same
+    targets are removed at the end. A batch inside a batch is part of the outer one."""
     if _BATCH.get() is not None:
         yield
         return
