@@ -456,27 +456,43 @@ class DopplerEstimator:
         return True, bool(schur > 1.0 / _YAW_OBSERVABLE_SIGMA_RADPS**2)
 
     def _solve_joint(self, a: np.ndarray, b: np.ndarray, levers: np.ndarray, radar_of: np.ndarray):
+        """(inliers, twist, covariance, ego static, yaw rate observable); Nones when no fit."""
         c = self.config
         n = len(a)
         if n < c.min_points:
             return None, None, None, False, False
         slow = np.abs(b) < c.static_speed_mps
-        if slow.sum() > c.static_fraction * n:
-            a_s, b_s = a[slow], b[slow]
-            ata_s = a_s.T @ a_s
-            vel_ok, yaw_ok = self._observability(a_s, ata_s)
-            if c.static_velocity == "refit" and vel_ok and len(a_s) >= c.min_points:
-                x, cov = self._solve(a_s, b_s, ata_s)
-            else:
-                x = np.zeros(3)
-                var = max(float(np.mean(b_s**2)), c.noise_floor_mps**2)
-                ata = ata_s + self._prior() * var + np.eye(3) * (var / _HUGE_VARIANCE)
-                cov = var * np.linalg.inv(ata)
-                cov = 0.5 * (cov + cov.T)
-            return slow, x, cov, True, yaw_ok
+        ego_static = bool(slow.sum() > c.static_fraction * n)
+        if ego_static and c.static_velocity == "zero":
+            return self._static_zero(a, b, slow)
+        # "refit" estimates the velocity as when moving: fitting only the points slower than
+        # static_speed_mps would truncate on the measurement itself and bias a creeping car's
+        # speed low (real nuScenes, braking below 1.3 m/s: 0.1-0.2 m/s too slow).
+        fit = self._solve_moving(a, b, levers, radar_of)
+        if fit is None:
+            return self._static_zero(a, b, slow) if ego_static else (None, None, None, False, False)
+        inl, x, cov, yaw_ok = fit
+        return inl, x, cov, ego_static, yaw_ok
+
+    def _static_zero(self, a: np.ndarray, b: np.ndarray, slow: np.ndarray):
+        """The static-ego rule's zero twist; its precision follows the slow points' geometry."""
+        c = self.config
+        a_s, b_s = a[slow], b[slow]
+        ata_s = a_s.T @ a_s
+        yaw_ok = self._observability(a_s, ata_s)[1]
+        var = max(float(np.mean(b_s**2)), c.noise_floor_mps**2)
+        ata = ata_s + self._prior() * var + np.eye(3) * (var / _HUGE_VARIANCE)
+        cov = var * np.linalg.inv(ata)
+        return slow, np.zeros(3), 0.5 * (cov + cov.T), True, yaw_ok
+
+    def _solve_moving(self, a: np.ndarray, b: np.ndarray, levers: np.ndarray, radar_of: np.ndarray):
+        """RANSAC over minimal sets, then least squares on the consensus set (twice);
+        (inliers, twist, covariance, yaw rate observable) or None."""
+        c = self.config
+        n = len(a)
         vel_ok, yaw_ok = self._observability(a)
         if not vel_ok:
-            return None, None, None, False, False
+            return None
 
         def inliers(x: np.ndarray) -> np.ndarray:
             # Per point, the sensor speed |v + w x t_i| sets the relative threshold.
@@ -491,7 +507,7 @@ class DopplerEstimator:
         # 3-point minimal sets (or 2 with the yaw rate at 0 when it is not observable).
         p = 3 if yaw_ok else 2
         if n < p:
-            return None, None, None, False, False
+            return None
         # Duplicate indices give a singular minimal set, which the determinant test drops.
         samples = gen.integers(0, n, size=(k, p))
         best_x, best_count = None, -1
@@ -521,12 +537,12 @@ class DopplerEstimator:
         x, cov = best_x, np.eye(3) * _HUGE_VARIANCE
         for _ in range(2):
             if inl.sum() < c.min_points:
-                return None, None, None, False, False
+                return None
             a_i = a[inl]
             ata_i = a_i.T @ a_i
             if not self._observability(a_i, ata_i)[0]:
-                return None, None, None, False, False
+                return None
             x, cov = self._solve(a_i, b[inl], ata_i)
             inl = inliers(x)
         yaw_ok = self._observability(a[inl])[1]
-        return inl, x, cov, False, yaw_ok
+        return inl, x, cov, yaw_ok

@@ -93,6 +93,28 @@ class OdometryResult:
 
 
 @dataclass(frozen=True)
+class DopplerCalibration:
+    """The Doppler calibration the fusion filter has estimated so far (its state and sigma)."""
+
+    yaw_bias_model: str  # "per_metre" (rad/m), "rate" (rad/s) or "none"
+    yaw_bias: float
+    yaw_bias_sigma: float
+    speed_scale_error: float  # true speed = Doppler speed x (1 + this)
+    speed_scale_sigma: float
+
+    def as_dict(self) -> dict:
+        unit = {"per_metre": "deg_per_100m", "rate": "deg_per_s"}.get(self.yaw_bias_model)
+        scale = 100.0 if self.yaw_bias_model == "per_metre" else 1.0
+        out: dict = {"yaw_bias_model": self.yaw_bias_model}
+        if unit is not None:
+            out[f"yaw_bias_{unit}"] = math.degrees(self.yaw_bias) * scale
+            out[f"yaw_bias_sigma_{unit}"] = math.degrees(self.yaw_bias_sigma) * scale
+            out["speed_scale_error"] = self.speed_scale_error
+            out["speed_scale_sigma"] = self.speed_scale_sigma
+        return out
+
+
+@dataclass(frozen=True)
 class KeyFrameGate:
     """Which dataset key frames become odometry key frames: one is passed over while the vehicle
     has moved less than ``min_travel_m`` and turned less than ``min_turn_deg`` since the previous
@@ -213,6 +235,13 @@ class RadarOdometry:
         self._q = np.diag(np.square(self.config.fusion.process_noise))
         self._growth = np.diag(self.config.fusion.invalid_doppler_growth)
         self._twist_floor = np.diag(np.square(self.config.fusion.twist_sigma_floor))
+        cal = self.config.fusion.calibration
+        self._calib_q = np.diag(np.square([cal.yaw_bias_walk, cal.speed_scale_walk]))
+        #: Doppler calibration estimated by the filter, kept across segments (it belongs to the
+        #: car): yaw-rate bias (rad/s, or rad/m with ``yaw_bias_model: per_metre``) and speed
+        #: scale error.
+        self._calib = np.zeros(2)
+        self._calib_cov = np.diag(np.square([cal.yaw_bias_prior, cal.speed_scale_prior]))
         #: Bytes of the ego_from_sensor matrices already checked rigid: the calibration
         #: of a radar repeats in every sweep, so each is checked once, not 5 times a frame.
         self._good_calibrations: set[tuple[str, bytes]] = set()
@@ -223,6 +252,7 @@ class RadarOdometry:
         self._registration: ScanToMapRegistration | None = None
         self._pose: np.ndarray | None = None
         self._cov = np.zeros((3, 3))
+        self._cross = np.zeros((3, 2))  # covariance of the pose error with the calibration's
         self._t_us: int | None = None
         self._twist = np.zeros(3)
         self._twist_cov = np.eye(3)
@@ -231,6 +261,18 @@ class RadarOdometry:
         self._rejections = 0
         self._kf = _Interval()
         self._kf_started = False
+
+    @property
+    def calibration(self) -> DopplerCalibration:
+        """The Doppler calibration estimated so far (kept across segments)."""
+        sig = np.sqrt(np.diag(self._calib_cov))
+        return DopplerCalibration(
+            self.config.fusion.calibration.yaw_bias_model,
+            float(self._calib[0]),
+            float(sig[0]),
+            float(self._calib[1]),
+            float(sig[1]),
+        )
 
     def _new_registration(self) -> ScanToMapRegistration | None:
         r = self.config.registration
@@ -351,12 +393,15 @@ class RadarOdometry:
         stopped = False
         if fit.valid:
             twist = fit.twist
-            twist_cov = _sym(fit.covariance) * cfg.fusion.doppler_cov_scale + self._twist_floor
+            twist_cov = _sym(fit.covariance) * cfg.fusion.doppler_cov_scale
+            # The zero-velocity test asks whether this fit's twist is told from 0; the floor
+            # below models errors shared across frames, and would call a creeping car stopped.
             if fit.ego_static and _chi2(twist, twist_cov) < _ZERO_VELOCITY_CHI2:
                 # Zero-velocity update: the static rule fired and the refitted twist cannot be
                 # told from 0, so integrating its noise would only add drift.
                 twist = np.zeros(3)
                 stopped = True
+            twist_cov = twist_cov + self._twist_floor
         else:
             twist = self._twist.copy()
             twist_cov = self._twist_cov + self._growth * max(gap_s, 1e-3)
@@ -372,7 +417,7 @@ class RadarOdometry:
             pose_cov = np.zeros((3, 3))
             delta, delta_cov = np.eye(4), np.zeros((3, 3))
         else:
-            xi = 0.5 * (self._twist + twist) * gap_s
+            xi, xi_calib = self._calibrated(0.5 * (self._twist + twist) * gap_s, gap_s)
             delta = exp_se2(xi)
             jr = exp_jacobian_twist(xi)
             # Twist random walk (q per second) integrated over the interval: q dt^3.
@@ -383,7 +428,16 @@ class RadarOdometry:
             delta_cov = jr @ xi_cov @ jr.T
             ad = adjoint_se2(invert(delta))
             pose = self._pose @ delta
-            pose_cov = _sym(ad @ self._cov @ ad.T + delta_cov)
+            jc = jr @ xi_calib  # pose error per calibration error
+            self._calib_cov = self._calib_cov + self._calib_q * gap_s
+            pose_cov = _sym(
+                ad @ self._cov @ ad.T
+                + ad @ self._cross @ jc.T
+                + jc @ self._cross.T @ ad.T
+                + jc @ self._calib_cov @ jc.T
+                + delta_cov
+            )
+            self._cross = ad @ self._cross + jc @ self._calib_cov
 
         reg_result: RegistrationResult | None = None
         status = "first" if first else "doppler"
@@ -442,6 +496,8 @@ class RadarOdometry:
             self._kf_started = True
 
         self._pose, self._cov = pose, pose_cov
+        if first:
+            self._cross = np.zeros((3, 2))
         self._t_us = frame.timestamp_us
         self._twist, self._twist_cov = twist, twist_cov
         self._stopped = stopped
@@ -472,6 +528,19 @@ class RadarOdometry:
             key_frame_covariance=kf_cov,
         )
 
+    def _calibrated(self, raw: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The Doppler motion ``raw`` (x, y, yaw over ``dt_s``) corrected by the estimated
+        calibration, and its (3, 2) Jacobian with respect to the calibration."""
+        model = self.config.fusion.calibration.yaw_bias_model
+        jac = np.zeros((3, 2))
+        if model == "none":
+            return raw, jac
+        bias, scale = self._calib
+        lever = raw[0] if model == "per_metre" else dt_s
+        jac[2, 0] = -lever
+        jac[0, 1], jac[1, 1] = raw[0], raw[1]
+        return np.array([raw[0] * (1 + scale), raw[1] * (1 + scale), raw[2] - bias * lever]), jac
+
     def _fuse(
         self,
         predicted: np.ndarray,
@@ -494,7 +563,13 @@ class RadarOdometry:
             self._rejections += 1
             return predicted, pred_cov, False, "rejected"
         self._rejections = 0
-        gain = pred_cov @ np.linalg.inv(s)
+        s_inv = np.linalg.inv(s)
+        gain = pred_cov @ s_inv
         pose = planar(predicted @ exp_se2(gain @ innovation))
         cov = _sym((np.eye(3) - gain) @ pred_cov)
+        if self.config.fusion.calibration.yaw_bias_model != "none":
+            gain_c = self._cross.T @ s_inv  # the calibration rows of the Kalman gain
+            self._calib = self._calib + gain_c @ innovation
+            self._calib_cov = _sym(self._calib_cov - gain_c @ self._cross)
+            self._cross = (np.eye(3) - gain) @ self._cross
         return pose, cov, True, "fused"

@@ -89,6 +89,8 @@ class OdometryTrajectory:
     processing_ms: np.ndarray  # (N,) float
     #: Key frames (after a segment's first): motion since the previous key frame and covariance.
     key_frame_motions: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    #: Doppler calibration estimated by the filter at the end of the run (``ours`` only).
+    calibration: dict | None = None
 
     def __len__(self) -> int:
         return len(self.timestamps_us)
@@ -231,6 +233,7 @@ def run_odometry(
         num_points=np.asarray(rows["npts"], dtype=np.int64),
         processing_ms=np.asarray(rows["ms"], dtype=np.float64),
         key_frame_motions=kf,
+        calibration=odo.calibration.as_dict() if hasattr(odo, "calibration") else None,
     )
 
 
@@ -298,6 +301,8 @@ def write_outputs(traj: OdometryTrajectory, out_dir: str | Path, config: Odometr
             write_text_atomic(d / "key_frames.csv", _key_frames_csv(sub))
             summary["scenes"][name] = scene_metrics(sub)
         summary["total"] = scene_metrics(traj)
+        if traj.calibration is not None:
+            summary["doppler_calibration"] = traj.calibration
         write_text_atomic(out / "config.yaml", dump_config(config))
         write_json_atomic(out / "summary.json", summary)
     return summary
