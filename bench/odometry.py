@@ -14,7 +14,8 @@ the same frames (filters invalid_state 0, ambig_state 3):
   ego frame, z = 0, moving points dropped by the Doppler fit and the sweeps de-skewed to the
   frame's time with the Doppler twist; voxel 1 m, max range 100 m, kiss-icp's deskew off, its
   defaults otherwise.
-* ``ours``: Doppler-seeded kiss-icp registration fused with the Doppler motion (configs/odometry).
+* ``ours``: Doppler-seeded kiss-icp registration fused with the Doppler motion
+  (radarslam/configs/odometry).
 
 Per scene and pooled over scenes (ATE and RPE as RMS over all poses or pairs, drift weighted by
 length): ATE after SE(2) alignment and from the first pose, RPE translation over 1 s and 10 m,

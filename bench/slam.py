@@ -175,7 +175,8 @@ def main() -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override a key of configs/slam/default.yaml (dotted, e.g. key_frames.min_travel_m=0)",
+        help="override a key of radarslam/configs/slam/default.yaml (dotted, e.g. "
+        "key_frames.min_travel_m=0)",
     )
     ap.add_argument(
         "--isam2-nodes",

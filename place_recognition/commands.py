@@ -23,7 +23,9 @@ def _echo_table(rows: list[dict]) -> None:
 
 @pr_app.command("prepare")
 def prepare_cmd(
-    config: Path = typer.Argument(..., help="prepare YAML (configs/place_recognition/data_*.yaml)"),
+    config: Path = typer.Argument(
+        ..., help="prepare YAML (radarslam/configs/place_recognition/data_*.yaml)"
+    ),
     out: Path = typer.Option(Path("outputs/place_recognition"), help="cache root"),
     dataroot: Path | None = typer.Option(None, help="nuScenes-layout dataroot (overrides config)"),
     overwrite: bool = typer.Option(False, help="recompute every stage"),
@@ -97,7 +99,9 @@ def eval_cmd(
     split: str = typer.Option("test", help="split to evaluate (val or test)"),
     rerank: bool = typer.Option(True, help="also evaluate with RCSHR re-ranking"),
     tune: bool = typer.Option(False, help="grid-search RCSHR parameters on the val split first"),
-    config: Path | None = typer.Option(None, help="eval YAML (configs/place_recognition/eval_*)"),
+    config: Path | None = typer.Option(
+        None, help="eval YAML (radarslam/configs/place_recognition/eval_*)"
+    ),
     out: Path = typer.Option(Path("outputs/place_recognition/eval"), help="output directory"),
     overrides: list[str] | None = _SET,
 ) -> None:
@@ -206,7 +210,9 @@ def query_cmd(
 
 @pr_app.command("ablation")
 def ablation_cmd(
-    config: Path = typer.Argument(..., help="prepare YAML (configs/place_recognition/data_*.yaml)"),
+    config: Path = typer.Argument(
+        ..., help="prepare YAML (radarslam/configs/place_recognition/data_*.yaml)"
+    ),
     dataroot: Path | None = typer.Option(None, help="nuScenes-layout dataroot (overrides config)"),
     cache_root: Path = typer.Option(Path("outputs/place_recognition"), help="cache root"),
     out: Path = typer.Option(Path("outputs/place_recognition/ablation"), help="output directory"),

@@ -1,7 +1,7 @@
 """Configuration of the place-recognition data side: accumulation, DPR, image, split, re-ranking.
 
 Every number of the AutoPlace protocol lives here (defaults = the paper / reference code values,
-see docs/place_recognition.md). YAML presets are in ``configs/place_recognition/``.
+see docs/place_recognition.md). YAML presets are in ``radarslam/configs/place_recognition/``.
 """
 
 from __future__ import annotations

@@ -19,7 +19,8 @@ from radarslam.io.text import read_text
 
 M = TypeVar("M", bound=BaseModel)
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+# The YAML presets ship inside the package, so a wheel or a plain `pip install .` finds them.
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 
 class StrictModel(BaseModel):

@@ -1,5 +1,5 @@
 """The shipped YAML presets load under their strict models and say what the code's defaults are,
-so a user reading configs/ sees the values a run without --config uses."""
+so a user reading radarslam/configs/ sees the values a run without --config uses."""
 
 import pytest
 

@@ -54,7 +54,9 @@ def git_state(commit_override: str | None = None) -> dict[str, Any]:
     commit = run("git", "rev-parse", "HEAD")
     if commit is None or commit_override:
         return {"commit": commit_override, "dirty": None, "source": "--git-commit"}
-    status = run("git", "status", "--porcelain", "--", "place_recognition", "configs", "tools")
+    status = run(
+        "git", "status", "--porcelain", "--", "place_recognition", "radarslam/configs", "tools"
+    )
     return {"commit": commit, "dirty": bool(status), "source": "git"}
 
 
@@ -192,11 +194,12 @@ def run(args) -> int:
             raise ConfigError("give --prepared, or --dataroot (with --simulate to generate it)")
         from place_recognition.config import load_prepare_config
         from place_recognition.prepare import prepare
+        from radarslam.config import CONFIG_DIR
 
         name = args.data_config
         path = Path(name)
         if not path.suffix:
-            path = REPO / "configs" / "place_recognition" / f"{name}.yaml"
+            path = CONFIG_DIR / "place_recognition" / f"{name}.yaml"
         cfg = load_prepare_config(path, [*args.set_data, f"source.dataroot={root}"])
         prepared = prepare(cfg, args.cache_root, progress=not args.quiet)
         print(f"[train_weights] prepared cache {prepared}", flush=True)

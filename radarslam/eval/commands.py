@@ -19,7 +19,8 @@ def _fmt(v, digits: int = 3) -> str:
 def eval_command(
     results_dir: Annotated[Path, typer.Argument(help="Results folder (see docs/outputs.md).")],
     config: Annotated[
-        Path | None, typer.Option(help="Evaluation YAML (default: configs/eval/default.yaml).")
+        Path | None,
+        typer.Option(help="Evaluation YAML (default: radarslam/configs/eval/default.yaml)."),
     ] = None,
     override: Annotated[
         list[str] | None, typer.Option("--set", help="Config override key.sub=value (repeatable).")

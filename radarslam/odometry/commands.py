@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "odometry" / "default.yaml"
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "odometry" / "default.yaml"
 
 
 def odometry(
@@ -20,7 +20,8 @@ def odometry(
         str | None, typer.Option(help="Comma-separated scene names (default: all).")
     ] = None,
     config: Annotated[
-        Path | None, typer.Option(help="Odometry YAML (default: configs/odometry/default.yaml).")
+        Path | None,
+        typer.Option(help="Odometry YAML (default: radarslam/configs/odometry/default.yaml)."),
     ] = None,
     set_: Annotated[
         list[str] | None,

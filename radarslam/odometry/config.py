@@ -1,4 +1,4 @@
-"""Configuration of the radar odometry front end (``configs/odometry/*.yaml``)."""
+"""Configuration of the radar odometry front end (``radarslam/configs/odometry/*.yaml``)."""
 
 from __future__ import annotations
 

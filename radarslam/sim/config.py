@@ -1,4 +1,5 @@
-"""Configuration of the synthetic world generator (pydantic, YAML presets in configs/sim/).
+"""Configuration of the synthetic world generator (pydantic; YAML presets in
+radarslam/configs/sim/).
 
 Every knob that other stages use for robustness tests (traffic density, a missing radar, an empty
 window, static ego, Doppler scale error, noise levels) lives here, so that a scenario is one YAML

@@ -1,5 +1,5 @@
-"""The back-end sections of a SLAM preset (``configs/slam/<preset>.yaml``): pose graph, loop
-verification and static map. The SLAM pipeline's config embeds :class:`BackendConfig`."""
+"""The back-end sections of a SLAM preset (``radarslam/configs/slam/<preset>.yaml``): pose graph,
+loop verification and static map. The SLAM pipeline's config embeds :class:`BackendConfig`."""
 
 from __future__ import annotations
 

@@ -176,7 +176,7 @@ def run_command(
         int | None, typer.Option(min=1, help="Use only the first N scenes.")
     ] = None,
     config: Annotated[
-        Path | None, typer.Option(help="SLAM YAML (default: configs/slam/default.yaml).")
+        Path | None, typer.Option(help="SLAM YAML (default: radarslam/configs/slam/default.yaml).")
     ] = None,
     override: Annotated[
         list[str] | None, typer.Option("--set", help="Config override key.sub=value (repeatable).")

@@ -1,4 +1,5 @@
-"""The SLAM preset (``configs/slam/<preset>.yaml``): front end, loop detection, back end."""
+"""The SLAM preset (``radarslam/configs/slam/<preset>.yaml``): front end, loop detection, back
+end."""
 
 from __future__ import annotations
 
