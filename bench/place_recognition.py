@@ -18,24 +18,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
-# Run as a script, this file's folder comes first on sys.path and its name would shadow the
-# place_recognition package.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-sys.modules.pop("place_recognition", None) if __name__ == "__main__" else None
 
 
 def throughput(preset: str, threads: int = 2, frames: int = 48, batch: int = 16) -> dict:
     """Descriptors/s of an (untrained) network on CPU: every sequence encodes seq_len frames."""
     import torch
 
-    from place_recognition.models import build_model, load_model_config, parameter_count
+    from radarslam.place_recognition.models import build_model, load_model_config, parameter_count
 
     cfg = load_model_config(preset)
     model = build_model(cfg).eval()
@@ -99,16 +92,21 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     parts = set(args.parts.split(","))
 
-    from place_recognition.ablation import VARIANTS, find_checkpoint, prepare_pair, run_ablation
-    from place_recognition.config import EvalConfig, PrepareConfig
-    from place_recognition.dataset import load_prepared
-    from place_recognition.evaluate import (
+    from radarslam.config import CONFIG_DIR, load_config
+    from radarslam.place_recognition.ablation import (
+        VARIANTS,
+        find_checkpoint,
+        prepare_pair,
+        run_ablation,
+    )
+    from radarslam.place_recognition.config import EvalConfig, PrepareConfig
+    from radarslam.place_recognition.dataset import load_prepared
+    from radarslam.place_recognition.evaluate import (
         baseline_ranking_fn,
         evaluate_method,
         markdown_table,
         write_results,
     )
-    from radarslam.config import CONFIG_DIR, load_config
 
     cfg_path = args.config or CONFIG_DIR / "place_recognition" / "data_city.yaml"
     prep = load_config(PrepareConfig, cfg_path, [f"source.dataroot={args.dataroot}"])

@@ -27,16 +27,12 @@ import argparse
 import itertools
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
-# bench/place_recognition.py would shadow the place_recognition package.
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-import radarslam  # noqa: E402, F401  (sets the OpenMP wait policy before torch/open3d load)
+import radarslam  # noqa: F401  (sets the OpenMP wait policy before torch/open3d load)
 
 
 def joint_ate(est: np.ndarray, gt: np.ndarray) -> float:

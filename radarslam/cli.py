@@ -27,10 +27,10 @@ app = typer.Typer(
 
 # --- command registration (each module is light at import time) -------------------------------
 # BEGIN COMMANDS
-from place_recognition.commands import pr_app  # noqa: E402
 from radarslam.eval import commands as _eval_commands  # noqa: E402
 from radarslam.nuscenes import commands as _nuscenes_commands  # noqa: E402
 from radarslam.odometry import commands as _odometry_commands  # noqa: E402
+from radarslam.place_recognition.commands import pr_app  # noqa: E402
 from radarslam.sim import commands as _sim_commands  # noqa: E402
 from radarslam.slam import commands as _slam_commands  # noqa: E402
 

@@ -117,7 +117,7 @@ def _no_samples_in_second_scene(root: Path, tmp: Path) -> None:
 
 
 def _empty_database(root: Path, tmp: Path) -> None:
-    from place_recognition.recognizer import PlaceRecognizer
+    from radarslam.place_recognition.recognizer import PlaceRecognizer
 
     PlaceRecognizer().save(tmp / "empty.npz")
 

@@ -49,9 +49,9 @@ def test_bad_yaml_and_missing_file(tmp_path):
 
 # ---- numeric settings: non-finite, out-of-range and negative seeds refused at load -------------
 def _all_models():
-    from place_recognition.config import PlaceRecognizerConfig
     from radarslam.eval.evaluate import EvalConfig
     from radarslam.odometry.config import OdometryConfig
+    from radarslam.place_recognition.config import PlaceRecognizerConfig
     from radarslam.sim.config import SimConfig
     from radarslam.slam.config import SlamConfig
 

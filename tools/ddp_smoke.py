@@ -34,7 +34,7 @@ def synthetic_corridor(
     seed: int = 0,
 ):
     """PreparedData of four drives along a corridor of random landmarks (see module doc)."""
-    from place_recognition.dataset import PreparedData
+    from radarslam.place_recognition.dataset import PreparedData
 
     rng = np.random.default_rng(seed)
     half = size // 2
@@ -66,13 +66,13 @@ def throughput(args) -> dict:
     """Frames/s of the SE trunk (batch of frames) and descriptors/s over a stream of sequences."""
     import torch
 
-    from place_recognition.models import (
+    from radarslam.place_recognition.models import (
         build_model,
         load_model_config,
         multiply_adds_per_frame,
         parameter_count,
     )
-    from place_recognition.train import compute_descriptors, resolve_device
+    from radarslam.place_recognition.train import compute_descriptors, resolve_device
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -120,8 +120,8 @@ def throughput(args) -> dict:
 def smoke_train(args) -> dict:
     import torch
 
-    from place_recognition.models import load_model_config
-    from place_recognition.train import TrainConfig, train
+    from radarslam.place_recognition.models import load_model_config
+    from radarslam.place_recognition.train import TrainConfig, train
 
     rank = int(os.environ.get("RANK", "0"))
     data = synthetic_corridor(n_db=args.frames, size=200)

@@ -6,7 +6,7 @@
     # the shipped weights: a prepared cache, one GPU, two stages (SE first, then SE+TE from it)
     python tools/train_weights.py --prepared outputs/place_recognition/city \
         --train compact_gpu --model compact_se_te --two-stage \
-        --weights place_recognition/weights/compact.pt
+        --weights radarslam/place_recognition/weights/compact.pt
     # quick proof run on the tiny preset (minutes on a CPU)
     python tools/train_weights.py --simulate demo --dataroot /tmp/demo --set-train epochs=2 ...
     # several GPUs (DDP): prepare first, then
@@ -15,8 +15,10 @@
 Steps:
   (a) the dataroot: generated with ``radarslam.sim`` when ``--simulate PRESET`` is given and the
       dataroot is not complete yet; otherwise an existing nuScenes-layout root (real or synthetic);
-  (b) the prepared cache via ``place_recognition.prepare`` (stages already cached are reused);
-  (c) training (``place_recognition.train.train``; ``--resume`` continues ``WORK/last.pt``);
+  (b) the prepared cache via ``radarslam.place_recognition.prepare`` (stages already cached are
+      reused);
+  (c) training (``radarslam.place_recognition.train.train``; ``--resume`` continues
+      ``WORK/last.pt``);
   (d) export: the best checkpoint is re-saved with float16 weights (loaded back as float32) to
       ``--weights``, with a JSON beside it holding the validation numbers (those of the selection
       run and re-measured with the exported float16 weights), the configs, the data summary, the
@@ -38,7 +40,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-DEFAULT_WEIGHTS = REPO / "place_recognition" / "weights" / "compact.pt"
+DEFAULT_WEIGHTS = REPO / "radarslam" / "place_recognition" / "weights" / "compact.pt"
 
 
 def git_state(commit_override: str | None = None) -> dict[str, Any]:
@@ -55,7 +57,13 @@ def git_state(commit_override: str | None = None) -> dict[str, Any]:
     if commit is None or commit_override:
         return {"commit": commit_override, "dirty": None, "source": "--git-commit"}
     status = run(
-        "git", "status", "--porcelain", "--", "place_recognition", "radarslam/configs", "tools"
+        "git",
+        "status",
+        "--porcelain",
+        "--",
+        "radarslam/place_recognition",
+        "radarslam/configs",
+        "tools",
     )
     return {"commit": commit, "dirty": bool(status), "source": "git"}
 
@@ -63,7 +71,7 @@ def git_state(commit_override: str | None = None) -> dict[str, Any]:
 def validation_recall(model, data, ns: list[int], batch_size: int, device: str) -> dict[int, float]:
     import torch
 
-    from place_recognition.train import compute_descriptors, recall_at_n_from_descriptors
+    from radarslam.place_recognition.train import compute_descriptors, recall_at_n_from_descriptors
 
     db_idx, val_idx = data.splits["database"], data.splits["val"]
     db = compute_descriptors(model, data, db_idx, batch_size=batch_size, device=device)
@@ -83,8 +91,8 @@ def export_weights(
     git_commit: str | None = None,
 ) -> dict[str, Any]:
     """Re-save ``checkpoint`` with float16 weights at ``weights`` plus a JSON; returns the JSON."""
-    from place_recognition.checkpoint import load_model, read_checkpoint, save_checkpoint
     from radarslam.io.atomic import write_json_atomic
+    from radarslam.place_recognition.checkpoint import load_model, read_checkpoint, save_checkpoint
 
     payload = read_checkpoint(checkpoint)
     model, model_cfg, meta = load_model(checkpoint, device=device)
@@ -177,10 +185,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(args) -> int:
-    from place_recognition.dataset import load_prepared
-    from place_recognition.models import load_model_config
-    from place_recognition.train import load_train_config, train
     from radarslam.errors import ConfigError
+    from radarslam.place_recognition.dataset import load_prepared
+    from radarslam.place_recognition.models import load_model_config
+    from radarslam.place_recognition.train import load_train_config, train
 
     rank = int(os.environ.get("RANK", "0"))
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and args.prepared is None:
@@ -192,9 +200,9 @@ def run(args) -> int:
         root = ensure_dataroot(args)
         if root is None:
             raise ConfigError("give --prepared, or --dataroot (with --simulate to generate it)")
-        from place_recognition.config import load_prepare_config
-        from place_recognition.prepare import prepare
         from radarslam.config import CONFIG_DIR
+        from radarslam.place_recognition.config import load_prepare_config
+        from radarslam.place_recognition.prepare import prepare
 
         name = args.data_config
         path = Path(name)

@@ -1,8 +1,8 @@
 """The paper's ablation (Table II): SE, SE+TE, SE+DPR, SE+TE+DPR, each with and without RCSHR.
 
 Two prepared caches share one split (it depends on poses only): ``<name>`` with DPR and
-``<name>_nodpr`` without. Each variant's network is trained with :func:`place_recognition.train.
-train` unless a checkpoint for it is found in ``checkpoint_dir`` (``<size>_<slug>.pt`` or
+``<name>_nodpr`` without. Each variant's network is trained with :func:`.train.train`
+unless a checkpoint for it is found in ``checkpoint_dir`` (``<size>_<slug>.pt`` or
 ``<size>/<slug>.pt`` or ``<size>_<slug>/best.pt``, slug in se, se_te, se_dpr, se_te_dpr). RCSHR
 parameters are tuned per variant on the validation split only, then applied to test.
 """
@@ -16,15 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
-from place_recognition.config import EvalConfig, PrepareConfig
-from place_recognition.dataset import PreparedData, load_prepared
-from place_recognition.evaluate import (
+from radarslam.errors import CheckpointError
+from radarslam.place_recognition.config import EvalConfig, PrepareConfig
+from radarslam.place_recognition.dataset import PreparedData, load_prepared
+from radarslam.place_recognition.evaluate import (
     EvalResult,
     descriptor_ranking_fn,
     evaluate_method,
     model_describe_fn,
 )
-from radarslam.errors import CheckpointError
 
 log = logging.getLogger("radarslam.place_recognition")
 
@@ -53,7 +53,7 @@ def prepare_pair(
     jobs: int = 1,
 ) -> tuple[Path, Path]:
     """(with-DPR cache, without-DPR cache) of one data config."""
-    from place_recognition.prepare import prepare
+    from radarslam.place_recognition.prepare import prepare
 
     with_dpr = cfg.model_copy(update={"dpr": cfg.dpr.model_copy(update={"enabled": True})})
     no_dpr = cfg.model_copy(
@@ -101,8 +101,8 @@ def run_variant(
     progress: bool = True,
 ) -> VariantRun:
     """Train (or load) one variant's network and evaluate it on test, with and without RCSHR."""
-    from place_recognition.checkpoint import load_model
-    from place_recognition.models import load_model_config, parameter_count
+    from radarslam.place_recognition.checkpoint import load_model
+    from radarslam.place_recognition.models import load_model_config, parameter_count
 
     preset = model_presets["se_te" if variant.temporal else "se"]
     ckpt = find_checkpoint(checkpoint_dir, size, variant.slug)
@@ -113,7 +113,7 @@ def run_variant(
                 f"no checkpoint for {size} {variant.name} in {checkpoint_dir} "
                 f"(expected {size}_{variant.slug}.pt)"
             )
-        from place_recognition.train import load_train_config, train
+        from radarslam.place_recognition.train import load_train_config, train
 
         model_cfg = load_model_config(preset)
         train_cfg = load_train_config(train_preset, train_overrides)

@@ -16,7 +16,7 @@ EVAL_SPLITS = ("val", "test")  # the database and train splits are not held out
 
 
 def _echo_table(rows: list[dict]) -> None:
-    from place_recognition.evaluate import markdown_table
+    from radarslam.place_recognition.evaluate import markdown_table
 
     typer.echo(markdown_table(rows))
 
@@ -33,11 +33,11 @@ def prepare_cmd(
     overrides: list[str] | None = _SET,
 ) -> None:
     """Index key frames, accumulate + DPR + rasterise, split; cached in OUT/<name>/."""
-    from place_recognition.config import load_prepare_config
-    from place_recognition.dataset import split_summary
-    from place_recognition.outputs import check_output_dir
-    from place_recognition.prepare import prepare
     from radarslam.errors import ConfigError
+    from radarslam.place_recognition.config import load_prepare_config
+    from radarslam.place_recognition.dataset import split_summary
+    from radarslam.place_recognition.outputs import check_output_dir
+    from radarslam.place_recognition.prepare import prepare
 
     if jobs < 1:
         raise ConfigError(f"--jobs {jobs}: must be >= 1")
@@ -62,16 +62,16 @@ def train_cmd(
     resume: bool = typer.Option(False, help="continue the run in OUT (OUT/last.pt)"),
     overwrite: bool = typer.Option(False, help="replace a previous run's checkpoints in OUT"),
 ) -> None:
-    """Train an AutoPlace network on a prepared cache (place_recognition.train).
+    """Train an AutoPlace network on a prepared cache (radarslam.place_recognition.train).
 
     OUT must not hold another run's checkpoints unless --resume or --overwrite is given.
     """
-    from place_recognition.dataset import load_prepared
-    from place_recognition.models import load_model_config
-    from place_recognition.outputs import check_output_dir
-    from place_recognition.train import load_train_config
-    from place_recognition.train import train as run_train
     from radarslam.errors import CheckpointError, ConfigError
+    from radarslam.place_recognition.dataset import load_prepared
+    from radarslam.place_recognition.models import load_model_config
+    from radarslam.place_recognition.outputs import check_output_dir
+    from radarslam.place_recognition.train import load_train_config
+    from radarslam.place_recognition.train import train as run_train
 
     check_output_dir(out)
     if resume and overwrite:
@@ -106,16 +106,16 @@ def eval_cmd(
     overrides: list[str] | None = _SET,
 ) -> None:
     """Recall@N, max F1, AP and PR curve on a split; Markdown + JSON + PNG in OUT."""
-    from place_recognition.config import load_eval_config
-    from place_recognition.dataset import load_prepared
-    from place_recognition.evaluate import (
+    from radarslam.errors import ConfigError
+    from radarslam.place_recognition.config import load_eval_config
+    from radarslam.place_recognition.dataset import load_prepared
+    from radarslam.place_recognition.evaluate import (
         baseline_ranking_fn,
         checkpoint_ranking_fn,
         evaluate_method,
         write_results,
     )
-    from place_recognition.outputs import check_output_dir
-    from radarslam.errors import ConfigError
+    from radarslam.place_recognition.outputs import check_output_dir
 
     if (checkpoint is None) == (baseline is None):
         raise ConfigError("give exactly one of --checkpoint or --baseline")
@@ -150,12 +150,12 @@ def build_db_cmd(
     """Describe every key frame of the chosen scenes and save a loop-detector database."""
     from tqdm import tqdm
 
-    from place_recognition.config import PlaceRecognizerConfig
-    from place_recognition.outputs import check_output_file
-    from place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
     from radarslam.config import load_config
     from radarslam.errors import ConfigError
     from radarslam.nuscenes.reader import NuScenesRadar
+    from radarslam.place_recognition.config import PlaceRecognizerConfig
+    from radarslam.place_recognition.outputs import check_output_file
+    from radarslam.place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
 
     if not scene and location is None:
         raise ConfigError("give --scene (repeatable) or --location")
@@ -186,9 +186,9 @@ def query_cmd(
     checkpoint: Path | None = typer.Option(None, help="checkpoint (default: the database's)"),
 ) -> None:
     """Top-k places for key frames of a scene (the database is not modified)."""
-    from place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
     from radarslam.errors import ConfigError, DataError
     from radarslam.nuscenes.reader import NuScenesRadar
+    from radarslam.place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
 
     if k < 1:
         raise ConfigError(f"-k {k}: must be >= 1")
@@ -223,9 +223,9 @@ def ablation_cmd(
     device: str = typer.Option("cpu", help="descriptor device"),
 ) -> None:
     """Table II: SE, SE+TE, SE+DPR, SE+TE+DPR with/without RCSHR (tuned on val) on test."""
-    from place_recognition.ablation import load_pair, run_ablation, table_ii_rows
-    from place_recognition.config import load_prepare_config
-    from place_recognition.evaluate import write_results
+    from radarslam.place_recognition.ablation import load_pair, run_ablation, table_ii_rows
+    from radarslam.place_recognition.config import load_prepare_config
+    from radarslam.place_recognition.evaluate import write_results
 
     cfg = load_prepare_config(config, [f"source.dataroot={dataroot}"] if dataroot else None)
     data, data_nodpr = load_pair(cfg, cache_root)

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from place_recognition.config import PrepareConfig, SplitConfig
 from radarslam.errors import ConfigError, DataError
+from radarslam.place_recognition.config import PrepareConfig, SplitConfig
 
 DAY_US = 86_400 * 1_000_000
 SPLIT_NAMES = ("database", "train", "val", "test")
@@ -202,7 +202,7 @@ def make_split(
 # ----------------------------------------------------------------------------------------------
 @dataclass
 class PreparedData:
-    """A prepared cache directory loaded in memory (see ``place_recognition.prepare``)."""
+    """A prepared cache directory loaded in memory (see ``radarslam.place_recognition.prepare``)."""
 
     root: Path
     # (N, H, W) uint8 {0, 1}; with extra channels (N, C, H, W) float16 in [0, 1]
@@ -353,13 +353,13 @@ def split_offsets(values: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
 
 
 def load_prepared(root: str | Path, with_points: bool = True) -> PreparedData:
-    """Load a prepared cache directory written by :func:`place_recognition.prepare.prepare`.
+    """Load a prepared cache directory written by :func:`.prepare.prepare`.
 
     ``with_points=False`` skips ``points.npz`` (RCS and points: only RCSHR and the handcrafted
     baselines need them), e.g. to train from a copy that lacks it.
     """
-    from place_recognition.image import unpack_images
     from radarslam.config import build_config, read_yaml
+    from radarslam.place_recognition.image import unpack_images
 
     root = Path(root)
     if not root.is_dir():
@@ -434,7 +434,7 @@ def load_prepared(root: str | Path, with_points: bool = True) -> PreparedData:
 def _check_stages(root: Path, cfg: PrepareConfig, files: dict[str, dict]) -> None:
     """Every stage file must carry the hash of ``config.yaml``'s sections for its stage: a file
     left over from another config (an interrupted or failed ``prepare --overwrite``) is stale."""
-    from place_recognition.prepare import STAGE_FILES, stage_hash
+    from radarslam.place_recognition.prepare import STAGE_FILES, stage_hash
 
     for stage, names in STAGE_FILES.items():
         want = stage_hash(cfg, stage)

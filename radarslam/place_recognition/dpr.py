@@ -36,8 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from place_recognition.config import DPRConfig
 from radarslam.odometry.doppler import fit_sensor_velocity
+from radarslam.place_recognition.config import DPRConfig
 from radarslam.types import RadarSweep
 
 

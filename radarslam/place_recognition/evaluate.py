@@ -1,7 +1,7 @@
 """The evaluation harness: one split, one ground truth (9 m), one metric code for every method.
 
 A method produces a :class:`Ranking` (per query, database frames best first with a lower-is-better
-score): descriptors through :class:`~place_recognition.retrieval.DescriptorIndex`, ScanContext
+score): descriptors through :class:`~.retrieval.DescriptorIndex`, ScanContext
 through its own two-stage search. RCSHR re-orders a ranking's top-M. :func:`evaluate_ranking`
 turns a ranking into recall@N, the PR curve, max F1 and AP (reference definitions, see
 :mod:`.metrics`).
@@ -16,19 +16,19 @@ from pathlib import Path
 
 import numpy as np
 
-from place_recognition.config import (
+from radarslam.errors import DataError
+from radarslam.io.atomic import write_json_atomic, write_text_atomic
+from radarslam.place_recognition.config import (
     EvalConfig,
     M2DPConfig,
     RerankConfig,
     RetrievalConfig,
     ScanContextConfig,
 )
-from place_recognition.dataset import PreparedData
-from place_recognition.metrics import PRCurve, pr_curve, recall_at_n
-from place_recognition.rcshr import rcs_histograms, rerank
-from place_recognition.retrieval import DescriptorIndex
-from radarslam.errors import DataError
-from radarslam.io.atomic import write_json_atomic, write_text_atomic
+from radarslam.place_recognition.dataset import PreparedData
+from radarslam.place_recognition.metrics import PRCurve, pr_curve, recall_at_n
+from radarslam.place_recognition.rcshr import rcs_histograms, rerank
+from radarslam.place_recognition.retrieval import DescriptorIndex
 
 
 @dataclass(frozen=True)
@@ -180,7 +180,7 @@ def tune_rcshr(
 
 # ---- handcrafted baselines ------------------------------------------------------------------
 def m2dp_descriptors(data: PreparedData, frames: np.ndarray, cfg: M2DPConfig) -> np.ndarray:
-    from place_recognition.baselines.m2dp import m2dp
+    from radarslam.place_recognition.baselines.m2dp import m2dp
 
     return np.stack([m2dp(data.points_xy[i], cfg) for i in np.asarray(frames)])
 
@@ -188,7 +188,7 @@ def m2dp_descriptors(data: PreparedData, frames: np.ndarray, cfg: M2DPConfig) ->
 def scancontext_ranking(
     data: PreparedData, query_frames: np.ndarray, k: int, cfg: ScanContextConfig
 ) -> Ranking:
-    from place_recognition.baselines.scancontext import ScanContextIndex
+    from radarslam.place_recognition.baselines.scancontext import ScanContextIndex
 
     db = data.splits["database"]
     index = ScanContextIndex(cfg)
@@ -270,7 +270,7 @@ def write_results(
     results: Sequence[EvalResult], out_dir: str | Path, stem: str = "results", plot: bool = True
 ) -> dict[str, Path]:
     """``<stem>.json``, ``<stem>.md`` and (optionally) ``<stem>_pr.png``, all atomic."""
-    from place_recognition.metrics import save_pr_plot
+    from radarslam.place_recognition.metrics import save_pr_plot
 
     out = Path(out_dir)
     rows = [r.row() for r in results]
@@ -328,7 +328,7 @@ def baseline_ranking_fn(
 
 def model_describe_fn(model, data: PreparedData, batch_size: int = 32, device: str = "cpu"):
     """``frames -> (M, D)`` descriptors of the sequences ending at ``frames``."""
-    from place_recognition.train import compute_descriptors
+    from radarslam.place_recognition.train import compute_descriptors
 
     return lambda frames: compute_descriptors(model, data, frames, batch_size, device)
 
@@ -336,7 +336,7 @@ def model_describe_fn(model, data: PreparedData, batch_size: int = 32, device: s
 def checkpoint_ranking_fn(
     data: PreparedData, checkpoint: str | Path, cfg: EvalConfig, device: str = "cpu"
 ) -> tuple[str, Callable[[np.ndarray, int], Ranking]]:
-    from place_recognition.checkpoint import load_model
+    from radarslam.place_recognition.checkpoint import load_model
 
     model, model_cfg, _ = load_model(checkpoint, device=device)
     name = str(getattr(model_cfg, "preset", "") or Path(checkpoint).stem)

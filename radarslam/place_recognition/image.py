@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from place_recognition.config import ImageConfig
 from radarslam.errors import DataError
+from radarslam.place_recognition.config import ImageConfig
 
 
 def normalise_rcs(rcs: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ Each stage stores a hash of the config sections it depends on. A stage whose fil
 are readable is skipped; if its hash differs from the current config, ``ConfigError`` unless
 ``overwrite=True``. A stage that is recomputed (missing, damaged or overwritten) first deletes its
 files and those of every later stage, and ``config.yaml`` is written last: an interrupted or failed
-run never leaves files of two configs that :func:`~place_recognition.dataset.load_prepared` would
+run never leaves files of two configs that :func:`~.dataset.load_prepared` would
 trust (it checks every file's hash against ``config.yaml``).
 """
 
@@ -28,8 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from place_recognition.config import PrepareConfig
-from place_recognition.dataset import (
+from radarslam.config import dump_config
+from radarslam.errors import ConfigError, DataError
+from radarslam.geometry import yaw_of
+from radarslam.io.atomic import atomic_open, write_json_atomic, write_text_atomic
+from radarslam.place_recognition.config import PrepareConfig
+from radarslam.place_recognition.dataset import (
     CONFIG_FILE,
     FRAMES_FILE,
     IMAGES_FILE,
@@ -39,12 +43,8 @@ from place_recognition.dataset import (
     SPLIT_NAMES,
     make_split,
 )
-from place_recognition.image import crop_mask, normalise_rcs, pack_images, rasterise
-from place_recognition.outputs import check_output_dir
-from radarslam.config import dump_config
-from radarslam.errors import ConfigError, DataError
-from radarslam.geometry import yaw_of
-from radarslam.io.atomic import atomic_open, write_json_atomic, write_text_atomic
+from radarslam.place_recognition.image import crop_mask, normalise_rcs, pack_images, rasterise
+from radarslam.place_recognition.outputs import check_output_dir
 
 log = logging.getLogger("radarslam.place_recognition")
 
@@ -223,7 +223,7 @@ def _clouds_for(cfg: PrepareConfig, readers, tokens, versions, progress: bool = 
     """Images, points and DPR stats of a list of key frames (one process)."""
     from tqdm import tqdm
 
-    from place_recognition.dpr import DPRStats, DynamicPointsRemoval
+    from radarslam.place_recognition.dpr import DPRStats, DynamicPointsRemoval
 
     acc = cfg.accumulation
     dpr = DynamicPointsRemoval(cfg.dpr) if cfg.dpr.enabled else None

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from place_recognition.config import RerankConfig
 from radarslam.errors import ConfigError
+from radarslam.place_recognition.config import RerankConfig
 
 
 def bin_edges(bin_min: float, bin_width: float) -> np.ndarray:

@@ -6,7 +6,7 @@
     rec.add([prev2, prev1, cloud], key=sample_token)      # explicit insertion
 
 Inputs are :class:`~radarslam.types.AccumulatedCloud` objects in the reference-sensor frame (or
-:class:`~place_recognition.prepare.FrameCloud`), alone or as a sequence oldest first; a temporal
+:class:`~.prepare.FrameCloud`), alone or as a sequence oldest first; a temporal
 model needs ``seq_len`` frames and a shorter sequence is padded by repeating its oldest frame (the
 same rule as at a scene start). Dynamic points must be removed while accumulating (the points no
 longer carry their sensor's line of sight): :meth:`PlaceRecognizer.cloud_from_reader` does that.
@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from place_recognition.config import PlaceRecognizerConfig
-from place_recognition.rcshr import bin_edges, kl_divergence, rcs_histogram
-from place_recognition.retrieval import DescriptorIndex, check_k
 from radarslam.config import build_config
 from radarslam.errors import CheckpointError, DataError
+from radarslam.place_recognition.config import PlaceRecognizerConfig
+from radarslam.place_recognition.rcshr import bin_edges, kl_divergence, rcs_histogram
+from radarslam.place_recognition.retrieval import DescriptorIndex, check_k
 from radarslam.types import AccumulatedCloud
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "compact.pt"
@@ -71,7 +71,7 @@ class PlaceRecognizer:
         checkpoint: str | Path | None = None,
         config: PlaceRecognizerConfig | None = None,
     ):
-        from place_recognition.train import resolve_device
+        from radarslam.place_recognition.train import resolve_device
 
         self.config = config or PlaceRecognizerConfig()
         if model is not None and checkpoint is not None:
@@ -83,7 +83,7 @@ class PlaceRecognizer:
         self.checkpoint_digest: str | None = None
         if model is None:
             path = checkpoint_path(checkpoint)
-            from place_recognition.checkpoint import load_model
+            from radarslam.place_recognition.checkpoint import load_model
 
             model, _, ck_meta = load_model(path, device=self.device)
             self.checkpoint = path
@@ -130,7 +130,7 @@ class PlaceRecognizer:
     # ---- inputs ------------------------------------------------------------------------------
     def cloud_from_reader(self, reader, sample_token: str) -> AccumulatedCloud:
         """Accumulate a key frame with this recognizer's sweeps/radars and DPR settings."""
-        from place_recognition.dpr import make_point_mask
+        from radarslam.place_recognition.dpr import make_point_mask
 
         acc = self.config.accumulation
         return reader.accumulate(
@@ -143,7 +143,7 @@ class PlaceRecognizer:
         )
 
     def _frame(self, item):
-        from place_recognition.prepare import FrameCloud, frame_from_cloud
+        from radarslam.place_recognition.prepare import FrameCloud, frame_from_cloud
 
         if isinstance(item, FrameCloud):
             return item
@@ -384,8 +384,8 @@ class PlaceRecognizer:
     # ---- persistence -------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
         """Write the database (descriptors, keys, RCS values, config) to one .npz, atomically."""
-        from place_recognition.outputs import check_output_file
         from radarslam.io.atomic import atomic_open
+        from radarslam.place_recognition.outputs import check_output_file
 
         path = check_output_file(path)
         try:
@@ -493,7 +493,7 @@ class _StoredDatabase:
 
 def _read_database(path: Path) -> _StoredDatabase:
     """Read and check a saved database; every defect is a one-line DataError naming ``path``."""
-    from place_recognition.dataset import read_npz
+    from radarslam.place_recognition.dataset import read_npz
 
     try:
         arrays = read_npz(path)

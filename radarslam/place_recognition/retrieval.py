@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from place_recognition.config import RetrievalConfig
 from radarslam.errors import ConfigError, DataError
+from radarslam.place_recognition.config import RetrievalConfig
 
 
 @dataclass(frozen=True)

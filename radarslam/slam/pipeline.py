@@ -1483,11 +1483,11 @@ class SlamPipeline:
 
     def _dpr_mask(self):
         if self.recognizer is None:
-            from place_recognition.config import DPRConfig
-            from place_recognition.dpr import make_point_mask
+            from radarslam.place_recognition.config import DPRConfig
+            from radarslam.place_recognition.dpr import make_point_mask
 
             return make_point_mask(DPRConfig())
-        from place_recognition.dpr import make_point_mask
+        from radarslam.place_recognition.dpr import make_point_mask
 
         return make_point_mask(self.recognizer.config.dpr)
 
@@ -1541,9 +1541,9 @@ class _RecognizerLoader:
     :meth:`load`."""
 
     def __init__(self, checkpoint: str | None, recognizer_config: str | None):
-        from place_recognition.config import PlaceRecognizerConfig
-        from place_recognition.recognizer import checkpoint_path
         from radarslam.config import CONFIG_DIR, load_config
+        from radarslam.place_recognition.config import PlaceRecognizerConfig
+        from radarslam.place_recognition.recognizer import checkpoint_path
 
         self.checkpoint = checkpoint
         self.config = PlaceRecognizerConfig()  # what PlaceRecognizer uses when given none
@@ -1555,7 +1555,7 @@ class _RecognizerLoader:
         checkpoint_path(checkpoint)
 
     def load(self):
-        from place_recognition.recognizer import PlaceRecognizer
+        from radarslam.place_recognition.recognizer import PlaceRecognizer
 
         return PlaceRecognizer(checkpoint=self.checkpoint, config=self.config)
 

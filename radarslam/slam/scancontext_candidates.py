@@ -33,7 +33,7 @@ class ScanContextCandidates:
     """ScanContext database of key-frame clouds (points in the key frame's ego frame, (N, 2))."""
 
     def __init__(self, ring_candidates: int = 25, config=None):
-        from place_recognition.config import ScanContextConfig
+        from radarslam.place_recognition.config import ScanContextConfig
 
         self.config = config or ScanContextConfig()
         self.ring_candidates = ring_candidates
@@ -46,12 +46,12 @@ class ScanContextCandidates:
         return len(self._keys)
 
     def describe(self, xy: np.ndarray) -> np.ndarray:
-        from place_recognition.baselines.scancontext import scan_context
+        from radarslam.place_recognition.baselines.scancontext import scan_context
 
         return scan_context(np.asarray(xy, dtype=np.float64)[:, :2], self.config)
 
     def add(self, key: Hashable, xy: np.ndarray, context: np.ndarray | None = None) -> None:
-        from place_recognition.baselines.scancontext import ring_key
+        from radarslam.place_recognition.baselines.scancontext import ring_key
 
         sc = self.describe(xy) if context is None else context
         n = len(self._keys)
@@ -71,7 +71,7 @@ class ScanContextCandidates:
     ) -> list[ScanContextCandidate]:
         """The ``k`` best stored key frames that ``allowed`` admits: ring-key nearest neighbours
         (rotation invariant), re-ranked by the column-shift distance."""
-        from place_recognition.baselines.scancontext import ring_key, shift_distance
+        from radarslam.place_recognition.baselines.scancontext import ring_key, shift_distance
 
         n = len(self._keys)
         ok = np.fromiter((allowed(key) for key in self._keys), dtype=bool, count=n)

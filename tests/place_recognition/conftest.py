@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from place_recognition.config import PrepareConfig
+from radarslam.place_recognition.config import PrepareConfig
 
 _NUSCENES_TESTS = Path(__file__).resolve().parents[1] / "nuscenes"
 
@@ -46,7 +46,7 @@ def mini_dataroot(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def mini_prepared(mini_dataroot, tmp_path_factory) -> Path:
-    from place_recognition.prepare import prepare
+    from radarslam.place_recognition.prepare import prepare
 
     out = tmp_path_factory.mktemp("pr_prepared")
     return prepare(_mini_prepare_config(mini_dataroot), out, progress=False)

@@ -3,8 +3,8 @@ configuration and learnable corridor data shared by the model, training and abla
 
 import numpy as np
 
-from place_recognition.dataset import DAY_US, PreparedData
-from place_recognition.models import ModelConfig
+from radarslam.place_recognition.dataset import DAY_US, PreparedData
+from radarslam.place_recognition.models import ModelConfig
 
 #: A 32x32, two-block SE+TE network: real code paths at test speed.
 TINY = ModelConfig(

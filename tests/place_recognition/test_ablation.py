@@ -6,10 +6,10 @@ import pytest
 import yaml
 from pr_synthetic import TINY, corridor_data
 
-from place_recognition.ablation import VARIANTS, run_ablation, table_ii_rows
-from place_recognition.checkpoint import read_checkpoint
-from place_recognition.config import EvalConfig
 from radarslam.errors import CheckpointError
+from radarslam.place_recognition.ablation import VARIANTS, run_ablation, table_ii_rows
+from radarslam.place_recognition.checkpoint import read_checkpoint
+from radarslam.place_recognition.config import EvalConfig
 
 # CPU convolution backward is bitwise deterministic only on one thread
 pytestmark = pytest.mark.usefixtures("torch_one_thread")

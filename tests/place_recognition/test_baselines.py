@@ -1,13 +1,13 @@
 import numpy as np
 
-from place_recognition.baselines.m2dp import m2dp
-from place_recognition.baselines.scancontext import (
+from radarslam.place_recognition.baselines.m2dp import m2dp
+from radarslam.place_recognition.baselines.scancontext import (
     ScanContextIndex,
     ring_key,
     scan_context,
     shift_distance,
 )
-from place_recognition.config import M2DPConfig, ScanContextConfig
+from radarslam.place_recognition.config import M2DPConfig, ScanContextConfig
 
 
 def rot(deg):

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from pr_synthetic import BASE_US, synthetic_frames
 
-from place_recognition.config import SplitConfig
-from place_recognition.dataset import (
+from radarslam.errors import DataError
+from radarslam.place_recognition.config import SplitConfig
+from radarslam.place_recognition.dataset import (
     DAY_US,
     PreparedData,
     build_sequences,
@@ -14,7 +15,6 @@ from place_recognition.dataset import (
     heldout_mask,
     make_split,
 )
-from radarslam.errors import DataError
 
 
 def test_split_rules_pinned():
@@ -106,7 +106,7 @@ def _rewrite_npz(path: Path, **arrays) -> None:
 
 
 def test_load_prepared_refuses_stale_or_damaged_stages(mini_prepared, tmp_path):
-    from place_recognition.dataset import load_prepared
+    from radarslam.place_recognition.dataset import load_prepared
 
     # a split made with another config (e.g. left over from an interrupted --overwrite)
     root = _copy_prepared(mini_prepared, tmp_path / "a")
@@ -127,7 +127,7 @@ def test_load_prepared_refuses_stale_or_damaged_stages(mini_prepared, tmp_path):
 
 
 def test_split_summary_of_a_garbled_file(mini_prepared, tmp_path):
-    from place_recognition.dataset import split_summary
+    from radarslam.place_recognition.dataset import split_summary
 
     root = _copy_prepared(mini_prepared, tmp_path)
     assert split_summary(root)["frames"] == 16

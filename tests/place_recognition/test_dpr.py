@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from place_recognition.config import REFERENCE_DPR_CHANNELS, DPRConfig
-from place_recognition.dpr import DynamicPointsRemoval, dpr_mask, make_point_mask
+from radarslam.place_recognition.config import REFERENCE_DPR_CHANNELS, DPRConfig
+from radarslam.place_recognition.dpr import DynamicPointsRemoval, dpr_mask, make_point_mask
 from radarslam.types import RADAR_DTYPE, RadarSweep
 
 

@@ -1,15 +1,15 @@
 import numpy as np
 import pytest
 
-from place_recognition.config import ImageConfig
-from place_recognition.image import (
+from radarslam.errors import DataError
+from radarslam.place_recognition.config import ImageConfig
+from radarslam.place_recognition.image import (
     normalise_rcs,
     pack_images,
     pixel_indices,
     rasterise,
     unpack_images,
 )
-from radarslam.errors import DataError
 
 
 def test_exact_pixel_of_points():

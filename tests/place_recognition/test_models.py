@@ -8,8 +8,10 @@ import pytest
 import torch
 from pr_synthetic import TINY  # the tiny AutoPlace model shared by the model tests
 
-from place_recognition.checkpoint import load_model, read_checkpoint, save_checkpoint
-from place_recognition.models import (
+from radarslam.config import build_config
+from radarslam.errors import CheckpointError, ConfigError
+from radarslam.place_recognition.checkpoint import load_model, read_checkpoint, save_checkpoint
+from radarslam.place_recognition.models import (
     PRESETS,
     ModelConfig,
     build_model,
@@ -18,8 +20,6 @@ from place_recognition.models import (
     multiply_adds_per_frame,
     parameter_count,
 )
-from radarslam.config import build_config
-from radarslam.errors import CheckpointError, ConfigError
 
 
 def _occupancy(shape, seed=0, p=0.1):

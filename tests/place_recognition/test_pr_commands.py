@@ -14,8 +14,8 @@ runner = CliRunner()
 
 @pytest.fixture(scope="module")
 def untrained_checkpoint(tmp_path_factory):
-    from place_recognition.checkpoint import save_checkpoint
-    from place_recognition.models import build_model, load_model_config
+    from radarslam.place_recognition.checkpoint import save_checkpoint
+    from radarslam.place_recognition.models import build_model, load_model_config
 
     torch.manual_seed(0)
     cfg = load_model_config("compact_se_te").model_copy(update={"seq_len": 2})

@@ -1,14 +1,14 @@
 import pytest
 
-from place_recognition.config import (
+from radarslam.config import CONFIG_DIR, build_config, load_config
+from radarslam.errors import ConfigError
+from radarslam.place_recognition.config import (
     EvalConfig,
     PlaceRecognizerConfig,
     PrepareConfig,
     RerankConfig,
     SplitConfig,
 )
-from radarslam.config import CONFIG_DIR, build_config, load_config
-from radarslam.errors import ConfigError
 
 PRESETS = CONFIG_DIR / "place_recognition"
 

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 from pr_synthetic import synthetic_frames
 
-from place_recognition.config import EvalConfig, RerankConfig
-from place_recognition.dataset import PreparedData, load_prepared, make_split
-from place_recognition.evaluate import (
+from radarslam.errors import ConfigError, DataError
+from radarslam.place_recognition.config import EvalConfig, RerankConfig
+from radarslam.place_recognition.dataset import PreparedData, load_prepared, make_split
+from radarslam.place_recognition.evaluate import (
     Ranking,
     apply_rcshr,
     baseline_ranking_fn,
@@ -17,12 +18,11 @@ from place_recognition.evaluate import (
     tune_rcshr,
     write_results,
 )
-from radarslam.errors import ConfigError, DataError
 
 
 def synthetic_data(seed=0):
     pos, t, names = synthetic_frames()
-    from place_recognition.config import SplitConfig
+    from radarslam.place_recognition.config import SplitConfig
 
     s = make_split(pos, t, names, SplitConfig(split_day=5))
     rng = np.random.default_rng(seed)

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from place_recognition.metrics import pr_curve, recall_at_n, save_pr_plot
 from radarslam.errors import DataError
+from radarslam.place_recognition.metrics import pr_curve, recall_at_n, save_pr_plot
 
 
 def test_recall_at_n_hand_example():

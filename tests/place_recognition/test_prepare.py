@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import yaml
 
-from place_recognition.config import PrepareConfig
-from place_recognition.dataset import load_prepared
-from place_recognition.image import rasterise
-from place_recognition.prepare import prepare
 from radarslam.errors import ConfigError, DataError
+from radarslam.place_recognition.config import PrepareConfig
+from radarslam.place_recognition.dataset import load_prepared
+from radarslam.place_recognition.image import rasterise
+from radarslam.place_recognition.prepare import prepare
 
 
 def test_prepared_contents(mini_prepared):

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from place_recognition.config import RerankConfig
-from place_recognition.rcshr import bin_edges, kl_divergence, rcs_histogram, rerank
 from radarslam.errors import ConfigError
+from radarslam.place_recognition.config import RerankConfig
+from radarslam.place_recognition.rcshr import bin_edges, kl_divergence, rcs_histogram, rerank
 
 
 def test_bin_edges_defaults_and_float_steps():

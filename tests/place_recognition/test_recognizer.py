@@ -4,10 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-from place_recognition.config import PlaceRecognizerConfig
-from place_recognition.recognizer import PlaceCandidate, PlaceRecognizer, iter_scene_sequences
 from radarslam.errors import CheckpointError, DataError
 from radarslam.nuscenes.reader import NuScenesRadar
+from radarslam.place_recognition.config import PlaceRecognizerConfig
+from radarslam.place_recognition.recognizer import (
+    PlaceCandidate,
+    PlaceRecognizer,
+    iter_scene_sequences,
+)
 
 
 class RandomProjection(torch.nn.Module):
@@ -91,7 +95,7 @@ def test_temporal_padding(clouds):
 def test_frame_feature_cache_matches_full_model(clouds):
     """With a split model (encode_frames + frame_codes + aggregate_codes), cached per-frame
     codes give the descriptor of the model's forward on the whole sequence."""
-    from place_recognition.models import build_model, load_model_config
+    from radarslam.place_recognition.models import build_model, load_model_config
 
     torch.manual_seed(0)
     cfg = load_model_config("compact_se_te").model_copy(update={"seq_len": 2})
@@ -190,8 +194,8 @@ def test_bad_databases_are_one_line_data_errors(clouds, tmp_path):
 @pytest.fixture(scope="module")
 def two_checkpoints(tmp_path_factory):
     """Two compact SE+TE checkpoints (seq_len 2) with the same architecture, other weights."""
-    from place_recognition.checkpoint import save_checkpoint
-    from place_recognition.models import build_model, load_model_config
+    from radarslam.place_recognition.checkpoint import save_checkpoint
+    from radarslam.place_recognition.models import build_model, load_model_config
 
     cfg = load_model_config("compact_se_te").model_copy(update={"seq_len": 2})
     out = tmp_path_factory.mktemp("ckpts")
@@ -270,7 +274,7 @@ def test_feature_cache_never_returns_features_of_changed_points(clouds):
     (a new cloud object over the same points, as the SLAM pipeline makes) is a cache hit."""
     import dataclasses
 
-    from place_recognition.models import build_model, load_model_config
+    from radarslam.place_recognition.models import build_model, load_model_config
 
     torch.manual_seed(0)
     cfg = load_model_config("compact_se_te").model_copy(update={"seq_len": 2})

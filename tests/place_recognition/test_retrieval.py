@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from place_recognition.config import RetrievalConfig
-from place_recognition.retrieval import DescriptorIndex
 from radarslam.errors import DataError
+from radarslam.place_recognition.config import RetrievalConfig
+from radarslam.place_recognition.retrieval import DescriptorIndex
 
 
 def test_exact_search_matches_brute_force_and_faiss():

@@ -11,9 +11,11 @@ import torch
 import torch.nn.functional as F
 from pr_synthetic import TINY, corridor_data  # shared with the model and ablation tests
 
-from place_recognition.checkpoint import load_model, read_checkpoint
-from place_recognition.models import build_model
-from place_recognition.train import (
+from radarslam.config import build_config
+from radarslam.errors import CheckpointError, ConfigError, DataError
+from radarslam.place_recognition.checkpoint import load_model, read_checkpoint
+from radarslam.place_recognition.models import build_model
+from radarslam.place_recognition.train import (
     FrameStore,
     TrainConfig,
     Triplet,
@@ -25,8 +27,6 @@ from place_recognition.train import (
     recall_at_n_from_descriptors,
     train,
 )
-from radarslam.config import build_config
-from radarslam.errors import CheckpointError, ConfigError, DataError
 
 # One thread: CPU convolution backward is only bitwise deterministic single-threaded.
 FAST = dict(epochs=4, select_after_epoch=0, patience=0, seed=1234, threads=1, device="cpu")
@@ -405,10 +405,10 @@ def test_train_weights_two_stage(data, tmp_path, monkeypatch):
 
     import yaml
 
-    import place_recognition.dataset
+    from radarslam.place_recognition import dataset as pr_dataset
 
     tool = _train_weights_tool()
-    monkeypatch.setattr(place_recognition.dataset, "load_prepared", lambda root: data)
+    monkeypatch.setattr(pr_dataset, "load_prepared", lambda root: data)
     (tmp_path / "model.yaml").write_text(yaml.safe_dump(TINY.model_dump(mode="json")))
     (tmp_path / "train.yaml").write_text(yaml.safe_dump({**FAST, "epochs": 2}))
     weights = tmp_path / "w.pt"
@@ -432,7 +432,7 @@ def test_train_weights_two_stage(data, tmp_path, monkeypatch):
 
 
 def test_new_run_removes_the_previous_runs_outputs(data, tmp_path, monkeypatch):
-    import place_recognition.train as train_module
+    import radarslam.place_recognition.train as train_module
 
     for name in ("best.pt", "last.pt", "history.json"):
         (tmp_path / name).write_text("previous run")
@@ -448,7 +448,7 @@ def test_new_run_removes_the_previous_runs_outputs(data, tmp_path, monkeypatch):
 
 
 def test_output_directory_and_device_errors(data, tmp_path):
-    from place_recognition.train import resolve_device
+    from radarslam.place_recognition.train import resolve_device
 
     afile = tmp_path / "afile"
     afile.write_text("x")

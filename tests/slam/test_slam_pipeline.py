@@ -32,8 +32,8 @@ def scenes(reader):
 def recognizer():
     import torch
 
-    from place_recognition.models import build_model, load_model_config
-    from place_recognition.recognizer import PlaceRecognizer
+    from radarslam.place_recognition.models import build_model, load_model_config
+    from radarslam.place_recognition.recognizer import PlaceRecognizer
 
     torch.manual_seed(0)
     return lambda: PlaceRecognizer(model=build_model(load_model_config("compact_se_te")).eval())
@@ -131,7 +131,7 @@ class _AllCandidates:
         return np.zeros(4, np.float32), np.zeros(1, np.float32)
 
     def query_descriptor(self, desc, rcs, k, exclude):
-        from place_recognition.recognizer import PlaceCandidate
+        from radarslam.place_recognition.recognizer import PlaceCandidate
 
         keys = [key for key in reversed(self.keys) if not exclude(key)]  # most recent first
         return [PlaceCandidate(key, 0.1, 0.1, r) for r, key in enumerate(keys[:k])]
@@ -141,7 +141,7 @@ class _AllCandidates:
 
     @property
     def config(self):
-        from place_recognition.config import PlaceRecognizerConfig
+        from radarslam.place_recognition.config import PlaceRecognizerConfig
 
         return PlaceRecognizerConfig()
 

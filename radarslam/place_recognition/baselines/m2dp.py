@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from place_recognition.config import M2DPConfig
 from radarslam.errors import DataError
+from radarslam.place_recognition.config import M2DPConfig
 
 
 def descriptor_dim(cfg: M2DPConfig) -> int:

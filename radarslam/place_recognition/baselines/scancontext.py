@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from place_recognition.config import ScanContextConfig
 from radarslam.errors import DataError
+from radarslam.place_recognition.config import ScanContextConfig
 
 
 def scan_context(
