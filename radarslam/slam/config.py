@@ -39,7 +39,7 @@ class KeyFrameConfig(StrictModel):
     #: candidate's future ones do, so centred maps overlap two paths in opposite lanes and the
     #: registration pulls them together (benchmark: reversed loops 0.14 m off to the side on
     #: average; past_if_reversed alone: ATE ratio 0.33 -> 0.27, recall 0.96 -> 0.90; "past"
-    #: for every candidate linked 2 groups fewer). docs/results.md, tenth session.
+    #: for every candidate linked 2 groups fewer; docs/results.md).
     candidate_map: Literal["centred", "past", "past_if_reversed"] = "past_if_reversed"
     #: Which dynamic-point removal cleans the key-frame clouds: the odometry's joint Doppler fit
     #: of every frame (free: it is already computed) or AutoPlace's DPR run again per sweep
@@ -114,9 +114,9 @@ class LoopDetectionConfig(StrictModel):
     #: best match goes to the translation search over headings within
     #: ``reversed_heading_range_deg`` of a half turn (one ICP refinement), then to the usual
     #: tests and session linking. Seed 33: recall 0.628 -> 0.797, 4 instead of 1 sessions in the
-    #: map, all 814 loops correct; demo 0.84 -> 1.00. On the long-scene benchmark it linked
-    #: nothing more until the turned query searched sessions outside the map too and a lone
-    #: vote could be confirmed (``confirm_*``; docs/results.md). Every 6th key frame (then the
+    #: map, all 814 loops correct; demo 0.84 -> 1.00. On the long-scene benchmark it links
+    #: sessions only together with ``reversed_targets: other_groups`` and confirmed lone votes
+    #: (``confirm_*``; docs/results.md). Every 6th key frame (then the
     #: backoff below): every 8th left the demo's reversed drive unlinked, every 4th cost the
     #: benchmark more time (docs/results.md).
     #: False: off.
@@ -213,7 +213,7 @@ class SlamConfig(StrictModel):
     key_frames: KeyFrameConfig = Field(default_factory=KeyFrameConfig)
     loops: LoopDetectionConfig = Field(default_factory=LoopDetectionConfig)
     backend: BackendConfig = Field(default_factory=BackendConfig)
-    #: Where the first session starts: its first ground-truth pose (so the map lives in the
+    #: Where the session processed first starts: its first ground-truth pose (the map lives in the
     #: nuScenes global frame; no other ground truth is used) or the identity. Later sessions
     #: always start unknown and are placed by loop closures.
     first_session_anchor: Literal["ground_truth", "identity"] = "ground_truth"

@@ -1,8 +1,8 @@
 """Multi-session pose graph over GTSAM: iSAM2 while driving, a final batch LM (optionally GNC).
 
 Nodes are key frames, addressed by :class:`~radarslam.slam.records.NodeKey` ``(session, index)``.
-Each session (nuScenes scene) is its own odometry chain. The first session added with
-``anchor="prior"`` is pinned by a tight prior at its first pose guess; a session added with
+Each session (nuScenes scene) is its own odometry chain. A session added with ``anchor="prior"``
+(the first) is pinned by a tight prior at its first pose guess; a session added with
 ``anchor="unknown"`` gets a *weak* prior (``unknown_anchor_sigmas``, default 100 m / pi) at its
 first pose guess: it keeps the problem well posed while the session floats, and it is negligible
 (information ratio ~1e-6) as soon as loop closures tie the session to the others. A session never
@@ -13,15 +13,15 @@ GTSAM key scheme: ``gtsam.symbol('x', (session_ordinal << 32) | index)`` where
 ``session_ordinal`` counts sessions in the order they were added (``Symbol(k).string()`` reads
 ``x<number>``; :meth:`PoseGraph.node_key` maps back).
 
-Tangent orders (dependencies.md §5.9): Pose2 is (x, y, theta); Pose3 is (rx, ry, rz, tx, ty, tz).
+Tangent orders (GTSAM's): Pose2 is (x, y, theta); Pose3 is (rx, ry, rz, tx, ty, tz).
 Covariances and information matrices passed in are always planar 3x3 in Pose2 order (x, y, yaw);
 with ``pose_type="pose3"`` they are embedded into 6x6 with tight z / roll / pitch sigmas.
 
-Robust kernels and iSAM2 (dependencies.md §5.8): a robust loop factor that arrives while drift is
-large stays down-weighted in iSAM2's cached linearisation, so :meth:`optimize_batch` (LM from the
-iSAM2 estimate, then LM with a redescending Geman-McClure kernel on the loops from the better of
-two starts, optionally followed by GNC with the odometry and priors as known inliers) should run
-at the end of a run; :meth:`estimate` returns whichever solve is newest.
+Robust kernels and iSAM2: a robust loop factor that arrives while drift is large stays down-weighted
+in iSAM2's cached linearisation, so :meth:`optimize_batch` (LM from the iSAM2 estimate, then LM with
+a redescending Geman-McClure kernel on the loops from the better of two starts, optionally followed
+by GNC with the odometry and priors as known inliers) should run at the end of a run;
+:meth:`estimate` returns whichever solve is newest.
 """
 
 from __future__ import annotations
