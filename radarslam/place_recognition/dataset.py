@@ -1,4 +1,5 @@
-"""The AutoPlace dataset protocol and the prepared-data container.
+"""The AutoPlace dataset protocol, the prepared cache's files (written by :mod:`.prepare`) and
+the prepared-data container.
 
 Split rules (reference ``split.py`` / ``split_refine.py``, autoplace.md §1.3-1.4), all pure
 functions of per-frame positions, timestamps and scene membership:
@@ -16,6 +17,7 @@ semantics); training negatives are DB frames farther than ``neg_radius_m``.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import zipfile
 import zlib
@@ -35,6 +37,29 @@ IMAGES_FILE = "images.npz"
 POINTS_FILE = "points.npz"
 SPLIT_FILE = "split.npz"
 CONFIG_FILE = "config.yaml"
+DPR_FILE = "dpr.json"
+SPLIT_JSON = "split.json"
+
+STAGES = ("frames", "clouds", "split")
+#: The config sections each stage of a prepared cache depends on.
+STAGE_SECTIONS = {
+    "frames": ("source", "accumulation"),
+    "clouds": ("source", "accumulation", "dpr", "image"),
+    "split": ("source", "accumulation", "split"),
+}
+#: Every file of a stage, in writing order (the last one marks the stage complete).
+STAGE_FILES = {
+    "frames": (FRAMES_FILE,),
+    "clouds": (POINTS_FILE, DPR_FILE, IMAGES_FILE),
+    "split": (SPLIT_FILE, SPLIT_JSON),
+}
+
+
+def stage_hash(cfg: PrepareConfig, stage: str) -> str:
+    """Hash of the config sections ``stage`` depends on, stored in each of its files."""
+    data = cfg.model_dump(mode="json")
+    part = {k: data[k] for k in STAGE_SECTIONS[stage]}
+    return hashlib.sha1(json.dumps(part, sort_keys=True).encode()).hexdigest()[:16]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -434,8 +459,6 @@ def load_prepared(root: str | Path, with_points: bool = True) -> PreparedData:
 def _check_stages(root: Path, cfg: PrepareConfig, files: dict[str, dict]) -> None:
     """Every stage file must carry the hash of ``config.yaml``'s sections for its stage: a file
     left over from another config (an interrupted or failed ``prepare --overwrite``) is stale."""
-    from radarslam.place_recognition.prepare import STAGE_FILES, stage_hash
-
     for stage, names in STAGE_FILES.items():
         want = stage_hash(cfg, stage)
         for name in names:
@@ -480,7 +503,7 @@ def _check_split(split: dict, n: int, path: Path) -> None:
 
 def split_summary(root: str | Path) -> dict:
     """The split counts written by ``prepare`` (``split.json``)."""
-    path = Path(root) / "split.json"
+    path = Path(root) / SPLIT_JSON
     if not path.is_file():
         raise DataError(f"{path}: missing; {REDO_HINT}")
     try:

@@ -18,7 +18,6 @@ trust (it checks every file's hash against ``config.yaml``).
 
 from __future__ import annotations
 
-import hashlib
 import itertools
 import json
 import logging
@@ -35,33 +34,25 @@ from radarslam.io.atomic import atomic_open, write_json_atomic, write_text_atomi
 from radarslam.place_recognition.config import PrepareConfig
 from radarslam.place_recognition.dataset import (
     CONFIG_FILE,
+    DPR_FILE,
     FRAMES_FILE,
     IMAGES_FILE,
     NPZ_ERRORS,
     POINTS_FILE,
     SPLIT_FILE,
+    SPLIT_JSON,
     SPLIT_NAMES,
+    STAGE_FILES,
+    STAGE_SECTIONS,
+    STAGES,
     make_split,
+    stage_hash,
 )
 from radarslam.place_recognition.image import crop_mask, normalise_rcs, pack_images, rasterise
 from radarslam.place_recognition.outputs import check_output_dir
 
 log = logging.getLogger("radarslam.place_recognition")
 
-STAGES = ("frames", "clouds", "split")
-_STAGE_SECTIONS = {
-    "frames": ("source", "accumulation"),
-    "clouds": ("source", "accumulation", "dpr", "image"),
-    "split": ("source", "accumulation", "split"),
-}
-DPR_FILE = "dpr.json"
-SPLIT_JSON = "split.json"
-#: Every file of a stage, in writing order (the last one marks the stage complete).
-STAGE_FILES = {
-    "frames": (FRAMES_FILE,),
-    "clouds": (POINTS_FILE, DPR_FILE, IMAGES_FILE),
-    "split": (SPLIT_FILE, SPLIT_JSON),
-}
 #: Arrays each .npz must hold to count as written.
 _NPZ_ARRAYS = {
     FRAMES_FILE: ("positions_xy", "yaw_rad", "timestamps_us", "scene_names", "sample_tokens",
@@ -70,12 +61,6 @@ _NPZ_ARRAYS = {
     IMAGES_FILE: ("occupancy_packed", "extra", "width"),
     SPLIT_FILE: ("sequences", *SPLIT_NAMES),
 }  # fmt: skip
-
-
-def stage_hash(cfg: PrepareConfig, stage: str) -> str:
-    data = cfg.model_dump(mode="json")
-    part = {k: data[k] for k in _STAGE_SECTIONS[stage]}
-    return hashlib.sha1(json.dumps(part, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _save_npz(path: Path, **arrays) -> None:
@@ -325,7 +310,7 @@ def _check_cache(out: Path, cfg: PrepareConfig, overwrite: bool) -> list[str]:
             if have is not None and have != want and not overwrite:
                 raise ConfigError(
                     f"{path} was made with a different config "
-                    f"({', '.join(_STAGE_SECTIONS[stage])}); "
+                    f"({', '.join(STAGE_SECTIONS[stage])}); "
                     "pass overwrite=True (--overwrite) or use another name"
                 )
             complete = complete and have == want
