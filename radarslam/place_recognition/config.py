@@ -103,7 +103,7 @@ class ImageConfig(StrictModel):
 
 
 class SplitConfig(StrictModel):
-    """The AutoPlace dataset protocol (reference ``split.py`` / ``split_refine.py``)."""
+    """The AutoPlace dataset protocol (the split of the AutoPlace reference code)."""
 
     # "day": frames from ``split_day`` days after the earliest frame on are held out.
     # "fraction": the last ceil(heldout_day_fraction * n_days) distinct capture days are held out.

@@ -1,7 +1,7 @@
 """The AutoPlace dataset protocol, the prepared cache's files (written by :mod:`.prepare`) and
 the prepared-data container.
 
-Split rules (reference ``split.py`` / ``split_refine.py``, autoplace.md §1.3-1.4), all pure
+Split rules (those of the AutoPlace reference code's split and its refinement), all pure
 functions of per-frame positions, timestamps and scene membership:
 
 1. Frames are ordered by scene (scenes in time order) then key-frame order; the first and last

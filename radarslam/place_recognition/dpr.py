@@ -13,7 +13,7 @@ Per radar sweep (in its own sensor frame, before accumulation):
 Both steps are :func:`radarslam.odometry.doppler.fit_sensor_velocity` (the odometry's estimator);
 this module only decides which sweeps it runs on and what a failed fit means.
 
-Departures from the reference code (autoplace.md §2), on purpose:
+Departures from the AutoPlace reference code, on purpose:
 - all five radars are filtered by default (the reference filters FRONT, BACK_LEFT, BACK_RIGHT only:
   ``DPRConfig.reference_three_radars()`` reproduces that);
 - ``v_r`` is the signed projection on the line of sight in each sweep's own sensor frame (the

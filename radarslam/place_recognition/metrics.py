@@ -1,4 +1,4 @@
-"""Place-recognition metrics with the AutoPlace reference definitions (autoplace.md §3.5).
+"""Place-recognition metrics with the AutoPlace reference code's definitions.
 
 - recall@N: a query is correct when any of its top-N database frames lies within the positive
   radius; the denominator is every query.

@@ -1,7 +1,7 @@
 """AutoPlace networks: the spatial encoder (SE) and the temporal encoder (TE).
 
-Re-implemented from the behaviour described in docs (``/work/shared/docs/autoplace.md`` §3.1-3.2),
-not from the reference code:
+Re-implemented from the paper and the documented behaviour of its reference code, not from
+the reference code itself:
 
 - SE: VGG-like blocks of 3x3 convolutions (stride 1, padding 1, bias) each followed by ReLU, a 2x2
   max-pool after every block, no BatchNorm/dropout; then an L2 normalisation of the channel vector

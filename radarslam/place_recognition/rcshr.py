@@ -1,4 +1,4 @@
-"""RCS Histogram Re-ranking (RCSHR, AutoPlace paper Sec. III-D; reference ``rcshr.py``).
+"""RCS Histogram Re-ranking (RCSHR, AutoPlace paper Sec. III-D, as its reference code does it).
 
 For each query, the top-M candidates by descriptor distance d are re-scored with
 ``alpha * KL(h_query || h_candidate) + (1 - alpha) * d`` where h are histograms of the per-frame

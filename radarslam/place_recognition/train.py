@@ -1,6 +1,6 @@
 """AutoPlace training: triplet loss with hard negatives mined from a per-epoch descriptor cache.
 
-Follows the reference behaviour described in ``/work/shared/docs/autoplace.md`` §3.3-3.4:
+Follows the documented behaviour of the AutoPlace reference code:
 
 - every epoch starts from descriptors of all database and train-query sequences computed in eval
   mode (the cache); the end-of-epoch validation pass computes the same descriptors with the same

@@ -11,7 +11,7 @@ the column-shift distance
 
 over the columns J that are non-empty in both (sector shifts make it invariant to yaw).
 
-Radar configuration (vs the reference's port, autoplace.md §4): metric max range 80 m (where
+Radar configuration (vs the AutoPlace reference code's port): metric max range 80 m (where
 ARS408 points are dense, instead of 1.414 normalised units of which only ~7 of 20 rings are ever
 filled), 20 rings x 60 sectors (3 m x 6 deg cells), point counts instead of binary occupancy.
 """
