@@ -14,8 +14,8 @@ from rich.console import Console
 from rich.table import Table
 
 from radarslam.eval.metrics import ate
+from radarslam.io.loops import NodeKey
 from radarslam.slam.pose_graph import PoseGraph, PoseGraphConfig
-from radarslam.slam.records import NodeKey
 from radarslam.slam.synthetic_graph import grow_isam2
 
 

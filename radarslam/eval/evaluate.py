@@ -23,10 +23,10 @@ from radarslam.errors import DataError
 from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth, evaluate_loops
 from radarslam.eval.metrics import align_se2, ate, drift, path_lengths_m, rpe, to_xy_yaw
 from radarslam.io.atomic import write_json_atomic
+from radarslam.io.loops import read_loops_csv_numbered
+from radarslam.io.results import check_session_name
 from radarslam.io.text import read_text
 from radarslam.io.trajectory import read_kitti, read_tum
-from radarslam.slam.outputs import check_session_name
-from radarslam.slam.records import read_loops_csv_numbered
 
 log = logging.getLogger("radarslam.eval")
 

@@ -22,7 +22,7 @@ from radarslam.config import StrictModel
 from radarslam.errors import DataError
 from radarslam.eval.metrics import se2_between, to_xy_yaw
 from radarslam.geometry import matrix_to_se2
-from radarslam.slam.records import LoopCandidate, NodeKey
+from radarslam.io.loops import LoopCandidate, NodeKey
 
 
 class LoopEvalConfig(StrictModel):

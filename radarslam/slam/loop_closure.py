@@ -37,7 +37,7 @@ from pydantic import Field
 from radarslam.config import StrictModel
 from radarslam.errors import DataError
 from radarslam.geometry import se2_to_matrix
-from radarslam.slam.records import LoopCandidate, LoopVerification, NodeKey
+from radarslam.io.loops import LoopCandidate, LoopVerification, NodeKey
 
 __all__ = [
     "LoopCandidate",

@@ -34,13 +34,12 @@ from radarslam.io.atomic import (
     write_json_atomic,
     write_text_atomic,
 )
+from radarslam.io.loops import LoopCandidate, write_loops_csv
 from radarslam.io.ply import write_ply_points
+from radarslam.io.results import RESULTS_FORMAT, check_session_name
 from radarslam.io.trajectory import write_kitti, write_tum
 from radarslam.slam.map import StaticMap
-from radarslam.slam.records import LoopCandidate, write_loops_csv
 
-RESULTS_FORMAT = "radarslam-results/1"
-_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 #: What a results folder holds (this module's files, ``radarslam eval``'s, the benchmark's, the
 #: temporary files of atomic writes). An existing folder is replaced only when it holds nothing
 #: else.
@@ -59,14 +58,6 @@ class SessionResult:
     slam_poses: np.ndarray  # (N, 4, 4)
     odometry_poses: np.ndarray | None = None
     gt_poses: np.ndarray | None = None
-
-
-def check_session_name(name: str) -> str:
-    if not _SAFE_NAME.match(name or ""):
-        raise DataError(
-            f"session name {name!r} cannot be used in file names (letters, digits, _ . - only)"
-        )
-    return name
 
 
 def trajectory_paths(results_dir: str | Path, session: str) -> dict[str, Path]:

@@ -70,8 +70,8 @@ import numpy as np
 
 from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert, se2_to_matrix, wrap_angle, yaw_of
+from radarslam.io.loops import LoopCandidate, NodeKey
 from radarslam.slam.config import SlamConfig
-from radarslam.slam.records import LoopCandidate, NodeKey
 from radarslam.types import AccumulatedCloud, SceneInfo
 
 log = logging.getLogger("radarslam.slam")

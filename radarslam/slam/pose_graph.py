@@ -1,6 +1,6 @@
 """Multi-session pose graph over GTSAM: iSAM2 while driving, a final batch LM (optionally GNC).
 
-Nodes are key frames, addressed by :class:`~radarslam.slam.records.NodeKey` ``(session, index)``.
+Nodes are key frames, addressed by :class:`~radarslam.io.loops.NodeKey` ``(session, index)``.
 Each session (nuScenes scene) is its own odometry chain. A session added with ``anchor="prior"``
 (the first) is pinned by a tight prior at its first pose guess; a session added with
 ``anchor="unknown"`` gets a *weak* prior (``unknown_anchor_sigmas``, default 100 m / pi) at its
@@ -39,7 +39,7 @@ from radarslam.config import StrictModel
 from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import matrix_to_se2, rotation_to_quat
 from radarslam.io.atomic import atomic_open
-from radarslam.slam.records import NodeKey
+from radarslam.io.loops import NodeKey
 
 RobustKind = Literal["cauchy", "huber", "none"]
 

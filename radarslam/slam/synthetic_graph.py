@@ -163,8 +163,8 @@ def grow_isam2(
     pipeline does per key frame, on a graph of any size)."""
     import time
 
+    from radarslam.io.loops import NodeKey
     from radarslam.slam.pose_graph import PoseGraph, PoseGraphConfig
-    from radarslam.slam.records import NodeKey
 
     laps = int(np.ceil(num_nodes / poses_per_lap))
     sg = multilap_circuit(

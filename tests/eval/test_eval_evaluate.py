@@ -9,8 +9,8 @@ from radarslam.errors import DataError
 from radarslam.eval.evaluate import EvalConfig, associate, evaluate_results
 from radarslam.eval.metrics import ate
 from radarslam.geometry import se2_to_matrix
+from radarslam.io.loops import LoopCandidate, NodeKey
 from radarslam.slam.outputs import SessionResult, write_results
-from radarslam.slam.records import LoopCandidate, NodeKey
 from radarslam.slam.synthetic_graph import multilap_circuit
 
 

@@ -14,8 +14,8 @@ from radarslam.config import load_config
 from radarslam.errors import ConfigError, DataError
 from radarslam.eval.evaluate import EvalConfig, evaluate_results
 from radarslam.geometry import se2_to_matrix
+from radarslam.io.loops import LoopCandidate, NodeKey
 from radarslam.slam.outputs import SessionResult, write_results
-from radarslam.slam.records import LoopCandidate, NodeKey
 
 T0 = 1_600_000_000_000_000
 

@@ -9,7 +9,7 @@ from radarslam.eval.loops import (
     gt_revisit_queries,
 )
 from radarslam.geometry import invert, se2_to_matrix
-from radarslam.slam.records import LoopCandidate, NodeKey
+from radarslam.io.loops import LoopCandidate, NodeKey
 from radarslam.slam.synthetic_graph import multilap_circuit
 
 

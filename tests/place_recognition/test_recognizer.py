@@ -303,7 +303,7 @@ def test_feature_cache_never_returns_features_of_changed_points(clouds):
 
 
 def test_exclude_takes_one_key_or_a_collection(clouds):
-    from radarslam.slam.records import NodeKey
+    from radarslam.io.loops import NodeKey
 
     rec = _small_db(clouds)
     seq = clouds[1][1]
@@ -362,7 +362,7 @@ def test_rcs_values_must_be_normalised(clouds, tmp_path):
 
 
 def test_k_descriptor_and_key_checks(clouds, tmp_path):
-    from radarslam.slam.records import NodeKey
+    from radarslam.io.loops import NodeKey
 
     rec = _small_db(clouds)
     desc, rcs = rec.describe(clouds[1][1])

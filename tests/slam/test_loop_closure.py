@@ -3,9 +3,9 @@ import pytest
 
 from radarslam.errors import DataError
 from radarslam.geometry import invert, matrix_to_se2, se2_to_matrix
+from radarslam.io.loops import NodeKey
 from radarslam.neighbors import GridIndex
 from radarslam.slam.loop_closure import LoopVerifier, LoopVerifierConfig, persistent_points
-from radarslam.slam.records import NodeKey
 from radarslam.slam.synthetic_graph import observe_place, random_place
 
 

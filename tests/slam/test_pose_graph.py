@@ -4,8 +4,8 @@ import pytest
 from radarslam.errors import DataError
 from radarslam.eval.metrics import ate
 from radarslam.geometry import invert, se2_to_matrix
+from radarslam.io.loops import NodeKey
 from radarslam.slam.pose_graph import PoseGraph, PoseGraphConfig
-from radarslam.slam.records import NodeKey
 from radarslam.slam.synthetic_graph import multilap_circuit
 
 

@@ -9,9 +9,9 @@ import pytest
 
 from radarslam.errors import CheckpointError, ConfigError, DataError
 from radarslam.geometry import invert, se2_to_matrix, yaw_of
+from radarslam.io.loops import LoopCandidate, LoopVerification
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.pipeline import SlamPipeline, load_recognizer
-from radarslam.slam.records import LoopCandidate, LoopVerification
 
 
 @pytest.fixture(scope="module")
@@ -796,8 +796,8 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
     # Sessions B and C are linked to each other (not to the map) with a placement 3 m off where
     # B's odometry has drifted by now; B's latest loop, against C, was measured exactly. The
     # guess for B's newest key frame against C's must chain from that loop, not the placement.
+    from radarslam.io.loops import NodeKey
     from radarslam.slam.pipeline import KeyFrame
-    from radarslam.slam.records import NodeKey
 
     cfg = SlamConfig()
     cfg.loops.guess_from_last_loop = enabled

@@ -3,7 +3,7 @@ import pytest
 
 from radarslam.errors import DataError
 from radarslam.geometry import se2_to_matrix
-from radarslam.slam.records import LoopCandidate, NodeKey, read_loops_csv, write_loops_csv
+from radarslam.io.loops import LoopCandidate, NodeKey, read_loops_csv, write_loops_csv
 
 
 def test_loops_csv_round_trip(tmp_path):
@@ -91,7 +91,7 @@ def test_binary_loops_csv_is_a_data_error(tmp_path):
 
 
 def test_loops_are_numbered_by_their_line(tmp_path):
-    from radarslam.slam.records import read_loops_csv_numbered
+    from radarslam.io.loops import read_loops_csv_numbered
 
     path = tmp_path / "loops.csv"
     loop = LoopCandidate(NodeKey("s", 1), NodeKey("s", 0), 2, 1, 0.1, False, "fitness")

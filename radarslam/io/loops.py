@@ -1,6 +1,8 @@
-"""Typed records of the back end (graph node keys, loop verifications) and the ``loops.csv`` codec.
+"""Loop-closure records (graph node keys, loop verifications and candidates) and the
+``loops.csv`` codec.
 
-Kept free of heavy imports so the evaluator can read ``loops.csv`` without gtsam or open3d.
+The SLAM back end writes these and ``radarslam eval`` reads them, so they sit below both; the
+module stays free of heavy imports so the evaluator reads ``loops.csv`` without gtsam or open3d.
 """
 
 from __future__ import annotations
