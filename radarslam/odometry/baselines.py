@@ -8,9 +8,9 @@
   de-skewing is off (it needs per-point timestamps of a spinning lidar). Its config for sparse
   radar: voxel 1 m, max range 100 m, min range 1 m, 20 points per voxel, one thread.
 
-Both guard kiss-icp's abort (dependencies.md pitfall 4): frames with too few points are not given
-to it (the pose is extrapolated with its own constant velocity instead), and its pose and delta are
-re-orthonormalised after every frame.
+Both guard against kiss-icp's abort (Sophus, on a rotation drifted off SO(3)): frames with too
+few points are not given to it (the pose is extrapolated with its own constant velocity instead),
+and its pose and delta are re-orthonormalised after every frame.
 """
 
 from __future__ import annotations

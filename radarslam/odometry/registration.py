@@ -5,7 +5,7 @@ We call kiss-icp's building blocks directly (``Registration.align_points_to_map`
 so that the initial guess is the Doppler-predicted pose rather than kiss-icp's constant-velocity
 extrapolation, and so that frames with too few points skip registration instead of feeding the
 extrapolation (which, after many empty frames, de-orthogonalises the rotation until Sophus
-aborts the process: dependencies.md pitfall 4). Every pose handed to kiss-icp is an exact SE(2)
+aborts the process). Every pose handed to kiss-icp is an exact SE(2)
 pose built here, and its output is projected back onto SE(2).
 
 kiss-icp's few iterations are followed by a Gauss-Newton refinement on point-to-local-mean
