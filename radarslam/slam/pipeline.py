@@ -364,7 +364,7 @@ class _Confirmation:
 @dataclass
 class _Group:
     """Sessions placed relative to each other by consistent loops; ``in_map`` for the group of
-    the anchored first session (its frame is the world)."""
+    the anchored session, the one processed first (its frame is the world)."""
 
     index: int
     from_session: dict[str, np.ndarray] = field(default_factory=dict)  # group_from_session
@@ -674,7 +674,7 @@ class SlamPipeline:
         use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
         for n, info in enumerate(infos):
             yield ("session", info.name)
-            # the first session may start on its ground truth; later ones start unknown
+            # the session processed first may start on its ground truth; later ones start unknown
             self.odometry.config.initial_pose = cfg.first_session_anchor if n == 0 else "identity"
             self.odometry.reset()
             buffer = SweepBuffer(
@@ -723,8 +723,8 @@ class SlamPipeline:
         (measured: no gain). torch gets one thread until the odometry is done, then both
         cores for the queue's backlog. The two forked processes run at a lower priority
         (``_HELPER_NICENESS``) so that this side, the longest chain, is not left behind.
-        A fourth process for AutoPlace's CNN was measured too (nineteenth session): identical
-        results, 2.5 s more work (torch and the weights loaded twice), no gain on 2 cores."""
+        A fourth process for AutoPlace's CNN measured no faster on 2 cores: identical results,
+        2.5 s more work (torch and the weights loaded twice)."""
         import multiprocessing as mp
 
         from radarslam.io.atomic import interrupts_deferred
