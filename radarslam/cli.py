@@ -157,3 +157,7 @@ def main() -> None:
         if code == 130:
             _exit_interrupted()
         sys.exit(code)
+
+
+if __name__ == "__main__":  # python -m radarslam.cli
+    main()
