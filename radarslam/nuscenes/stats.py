@@ -1,22 +1,31 @@
-"""Radar statistics of any dataroot, side by side with the figures measured on real nuScenes.
+"""Radar statistics of a dataroot, computed the same way on any dataroot (real or synthetic).
 
-Every statistic is computed on the raw points of each sweep (all 125 clusters on real data, NaN
-points dropped) unless it says "after the default filters" (the devkit's: invalid_state 0,
-dyn_prop 0..6, ambig_state 3). A point is "moving" when its compensated radial speed
-``|u . v_comp|`` exceeds 1 m/s, "static" otherwise.
+``radarslam stats DATAROOT --reference REF`` runs this on both and prints the figures side by
+side, so a synthetic world is judged against measured real sweeps rather than remembered figures.
 
-* Doppler-oracle consistency: on real files ``u . (v - v_comp) = -u . v_sensor`` holds for one
-  sensor velocity per sweep. We fit that velocity by least squares per sweep and report the RMS
-  residual (m/s); 0 means exact.
-* Landmark re-detection: the static points of a sweep (after the default filters), moved to the
-  world frame with the ground-truth poses, that have a detection of the same radar (after the
-  default filters) within 1.0 m in the next sweep, and in any of the next 3 sweeps.
+What is measured (one reading pass per scene, :func:`read_scene`, then one pure function per
+group of figures):
+
+* Points are those the odometry reads: its point filter (``OdometryConfig().points``:
+  invalid_state 0, ambig_state 3, every dyn_prop), unless a figure says "before filtering"
+  (every point the reader returns: NaN points and absurd coordinates are already dropped).
+* "Doppler-static" and "moving" come from the odometry's joint Doppler fit
+  (:meth:`DopplerEstimator.fit_frame` with ``OdometryConfig().doppler``) on each frame of the
+  reader's five-radar grouping: a point is static when it is an inlier of a valid fit. Points of
+  a frame whose fit is invalid are neither (no source for re-detection, not counted as moving).
+* Re-detection: each Doppler-static point of a sweep is moved into the sensor frame of the
+  following sweeps of the same radar with the dataset's ground-truth ego poses and calibration;
+  it is re-detected when a filtered point of that sweep lies within ``radius_m`` (in the sensor's
+  xy plane). "next" counts points that have a next sweep, "within 3" points that have three.
+* Doppler drive: per scene, the fit's yaw rate and speed (the last valid fit held over invalid
+  ones, 0 before the first) integrated over the frames (trapezoid rule) against the ground-truth
+  heading change and path length at the same frames.
 """
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
+import math
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -24,282 +33,439 @@ import numpy as np
 from radarslam.nuscenes.filters import RadarPointFilter
 from radarslam.types import RADAR_CHANNELS, RadarSweep
 
-TANGENTIAL_MIN_SENSOR_SPEED_MPS = 2.0
-MOVING_SPEED_MPS = 1.0
 REDETECT_RADIUS_M = 1.0
 REDETECT_LOOKAHEAD = 3
 
-#: Figures from docs (nuscenes-radar-format.md), measured on real nuScenes radar files.
-REAL_NUSCENES: dict[str, str] = {
-    "points_per_sweep": "125 (every sweep)",
-    "points_per_sweep_filtered": "~60 (roughly half)",
-    "range_p50_m": "44-76",
-    "range_max_m": "93-214",
-    "rcs_p5_dbsm": "about -4",
-    "rcs_p50_dbsm": "2-7",
-    "rcs_p95_dbsm": "15-23",
-    "invalid_state_0": "55-60 %",
-    "ambig_state_3": "80-98 %",
-    "dyn_prop_mostly": "1 and 3",
-    "tangential_p50_mps": "2.3-2.6",
-    "doppler_oracle_rms_mps": "0 (exact)",
-}
+
+# --- what one reading pass keeps ---------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class SweepRecord:
+    """One radar sweep after the point filter, with the Doppler fit's verdict per point."""
+
+    channel: str
+    timestamp_us: int
+    raw_count: int  # points before filtering
+    xyz: np.ndarray  # (N, 3) filtered points in the sensor frame
+    rcs: np.ndarray  # (N,) dBsm
+    static: np.ndarray  # (N,) bool: inlier of a valid joint Doppler fit
+    fitted: bool  # the sweep's frame had a valid fit (False also for a sweep in no frame)
+    world_from_sensor: np.ndarray  # 4x4, ground truth
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameRecord:
+    """One frame's joint Doppler fit and its ground-truth pose."""
+
+    timestamp_us: int
+    valid: bool
+    twist: np.ndarray  # (3,) vx, vy (m/s, ego frame), yaw rate (rad/s)
+    world_from_ego: np.ndarray  # 4x4 at timestamp_us
+
+
+@dataclass(frozen=True, eq=False)
+class SceneRecord:
+    name: str
+    sweeps: dict[str, list[SweepRecord]]  # channel -> its sweeps in time order
+    frames: list[FrameRecord]
+
+
+def odometry_inputs():
+    """(point filter, Doppler estimator) of the odometry's default configuration."""
+    from radarslam.odometry.config import OdometryConfig
+    from radarslam.odometry.doppler import DopplerEstimator
+
+    cfg = OdometryConfig()
+    pc = cfg.points
+    filt = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+    return filt, DopplerEstimator(cfg.doppler)
+
+
+def filter_text(point_filter: RadarPointFilter) -> str:
+    """``invalid_state 0, ambig_state 3``: the states a filter keeps, "no filter" when none."""
+    parts = []
+    for name, states in (
+        ("invalid_state", point_filter.invalid_states),
+        ("dyn_prop", point_filter.dynprop_states),
+        ("ambig_state", point_filter.ambig_states),
+    ):
+        if states is not None:
+            parts.append(f"{name} {','.join(str(v) for v in sorted(states))}")
+    return ", ".join(parts) or "no filter"
+
+
+def _record(sweep: RadarSweep, raw_count: int, static: np.ndarray, fitted: bool) -> SweepRecord:
+    p = sweep.points
+    xyz = np.column_stack([p["x"], p["y"], p["z"]]).astype(np.float64)
+    return SweepRecord(
+        channel=sweep.channel,
+        timestamp_us=int(sweep.timestamp_us),
+        raw_count=raw_count,
+        xyz=xyz,
+        rcs=p["rcs"].astype(np.float64),
+        static=np.asarray(static, dtype=bool).copy(),
+        fitted=fitted,
+        world_from_sensor=sweep.world_from_sensor,
+    )
+
+
+def read_scene(
+    reader,
+    scene,
+    point_filter: RadarPointFilter,
+    estimator,
+    max_frames: int | None = None,
+    on_frame=None,
+) -> SceneRecord:
+    """Read one scene of a :class:`NuScenesRadar` frame by frame and fit each frame.
+
+    ``max_frames`` keeps the first frames only (and each radar's sweeps up to its last one read);
+    ``on_frame()`` is called after each frame (a progress bar)."""
+    info = reader.scene(scene)
+    everything = RadarPointFilter.none()
+    by_token: dict[str, SweepRecord] = {}
+    frames: list[FrameRecord] = []
+    for k, frame in enumerate(reader.iter_frames(info, filters=everything)):
+        if max_frames is not None and k >= max_frames:
+            break
+        raw = {ch: len(sw) for ch, sw in frame.sweeps.items()}
+        kept = [sw.with_points(point_filter.apply(sw.points)) for sw in frame.sweeps.values()]
+        fit = estimator.fit_frame(kept)
+        for sw in kept:
+            static = fit.static_masks.get(sw.channel) if fit.valid else None
+            if static is None:
+                static = np.zeros(len(sw), dtype=bool)
+            by_token[sw.token] = _record(sw, raw[sw.channel], static, fit.valid)
+        frames.append(
+            FrameRecord(
+                timestamp_us=int(frame.timestamp_us),
+                valid=bool(fit.valid),
+                twist=np.asarray(fit.twist, dtype=np.float64),
+                world_from_ego=np.asarray(frame.world_from_ego, dtype=np.float64),
+            )
+        )
+        if on_frame is not None:
+            on_frame()
+    sweeps: dict[str, list[SweepRecord]] = {}
+    for ch in RADAR_CHANNELS:
+        tokens = reader.sweep_tokens(info, ch)
+        read = [i for i, t in enumerate(tokens) if t in by_token]
+        # A sweep no frame took (no anchor within the sync tolerance) still belongs to its
+        # radar's chain: a re-detection target, never a source (no fit judged its points).
+        last = (read[-1] if read else -1) if max_frames is not None else len(tokens) - 1
+        chain = []
+        for tok in tokens[: last + 1]:
+            rec = by_token.get(tok)
+            if rec is None:
+                sw = reader.load_sweep(tok, filters=everything)
+                kept = sw.with_points(point_filter.apply(sw.points))
+                rec = _record(kept, len(sw), np.zeros(len(kept), dtype=bool), False)
+            chain.append(rec)
+        sweeps[ch] = chain
+    return SceneRecord(name=info.name, sweeps=sweeps, frames=frames)
+
+
+# --- statistics ----------------------------------------------------------------------------------
+
+
+def _nan_to_none(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _nan_to_none(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_nan_to_none(v) for v in x]
+    return x
+
+
+def _percentiles(values: np.ndarray, qs: Iterable[int] = (10, 50, 90)) -> dict[str, float]:
+    if len(values) == 0:
+        return {f"p{q}": float("nan") for q in qs}
+    return {f"p{q}": float(np.percentile(values, q)) for q in qs}
+
+
+def _all_sweeps(scenes: Sequence[SceneRecord], channel: str | None = None) -> list[SweepRecord]:
+    chans = RADAR_CHANNELS if channel is None else (channel,)
+    return [s for sc in scenes for ch in chans for s in sc.sweeps.get(ch, [])]
+
+
+@dataclass
+class PointCounts:
+    """Points per sweep (after the filter unless ``raw``), over every radar's sweeps."""
+
+    num_sweeps: int
+    raw_mean: float
+    mean: float
+    p10: float
+    p50: float
+    p90: float
+    empty_fraction: float  # sweeps with no point left after the filter
+    per_radar_mean: dict[str, float]
+
+
+def point_counts(scenes: Sequence[SceneRecord]) -> PointCounts:
+    sweeps = _all_sweeps(scenes)
+    n = np.array([len(s) for s in sweeps], dtype=np.float64)
+    raw = np.array([s.raw_count for s in sweeps], dtype=np.float64)
+    pct = _percentiles(n)
+    per_radar = {}
+    for ch in RADAR_CHANNELS:
+        c = [len(s) for s in _all_sweeps(scenes, ch)]
+        per_radar[ch] = float(np.mean(c)) if c else float("nan")
+    return PointCounts(
+        num_sweeps=len(sweeps),
+        raw_mean=float(raw.mean()) if len(raw) else float("nan"),
+        mean=float(n.mean()) if len(n) else float("nan"),
+        p10=pct["p10"],
+        p50=pct["p50"],
+        p90=pct["p90"],
+        empty_fraction=float((n == 0).mean()) if len(n) else float("nan"),
+        per_radar_mean=per_radar,
+    )
+
+
+@dataclass
+class Redetection:
+    """Fraction of Doppler-static points re-detected by the same radar within ``radius_m``."""
+
+    radius_m: float
+    lookahead: int
+    next: float  # in the next sweep
+    within: float  # in any of the next ``lookahead`` sweeps
+    sources_next: int  # static points that had a next sweep
+    sources_within: int  # static points that had ``lookahead`` later sweeps
+    per_radar_next: dict[str, float]
+    per_radar_within: dict[str, float]
+
+
+def _hits(src: SweepRecord, dst: SweepRecord, radius_m: float) -> np.ndarray:
+    """(M,) whether each static point of ``src``, moved into ``dst``'s sensor frame, has a point
+    of ``dst`` within ``radius_m`` in the xy plane."""
+    pts = src.xyz[src.static]
+    if len(pts) == 0 or len(dst) == 0:
+        return np.zeros(len(pts), dtype=bool)
+    t = np.linalg.solve(dst.world_from_sensor, src.world_from_sensor)
+    moved = pts @ t[:3, :3].T + t[:3, 3]
+    d2 = ((moved[:, None, :2] - dst.xyz[None, :, :2]) ** 2).sum(-1)
+    return d2.min(axis=1) <= radius_m * radius_m
+
+
+def _redetect_chain(chain: Sequence[SweepRecord], radius_m: float, lookahead: int):
+    """(hits next, sources next, hits within, sources within) of one radar's sweeps."""
+    h1 = n1 = hk = nk = 0
+    for i, src in enumerate(chain):
+        m = int(src.static.sum())
+        if m == 0 or i + 1 >= len(chain):
+            continue
+        hit = np.zeros(m, dtype=bool)
+        for j in range(1, lookahead + 1):
+            if i + j >= len(chain):
+                break
+            h = _hits(src, chain[i + j], radius_m)
+            if j == 1:
+                h1, n1 = h1 + int(h.sum()), n1 + m
+            hit |= h
+        if i + lookahead < len(chain):
+            hk, nk = hk + int(hit.sum()), nk + m
+    return h1, n1, hk, nk
+
+
+def redetection(
+    scenes: Sequence[SceneRecord],
+    radius_m: float = REDETECT_RADIUS_M,
+    lookahead: int = REDETECT_LOOKAHEAD,
+) -> Redetection:
+    per: dict[str, tuple[int, int, int, int]] = {}
+    for ch in RADAR_CHANNELS:
+        tot = np.zeros(4, dtype=np.int64)
+        for sc in scenes:
+            tot += np.array(_redetect_chain(sc.sweeps.get(ch, []), radius_m, lookahead))
+        per[ch] = tuple(int(x) for x in tot)
+
+    def frac(h: int, n: int) -> float:
+        return h / n if n else float("nan")
+
+    h1, n1, hk, nk = (sum(v[i] for v in per.values()) for i in range(4))
+    return Redetection(
+        radius_m=radius_m,
+        lookahead=lookahead,
+        next=frac(h1, n1),
+        within=frac(hk, nk),
+        sources_next=n1,
+        sources_within=nk,
+        per_radar_next={ch: frac(v[0], v[1]) for ch, v in per.items()},
+        per_radar_within={ch: frac(v[2], v[3]) for ch, v in per.items()},
+    )
+
+
+@dataclass
+class SceneDrive:
+    duration_s: float
+    heading_error_deg: float  # integrated fit yaw rate minus ground-truth heading change
+    gt_heading_change_deg: float
+    fit_path_m: float
+    gt_path_m: float
+
+
+@dataclass
+class DopplerDrive:
+    """The joint Doppler fit integrated over each scene against the ground truth."""
+
+    num_scenes: int  # scenes with at least two frames
+    valid_fraction: float  # frames whose fit was valid
+    heading_error_worst_dps: float  # max over scenes of |heading error| / duration
+    heading_error_median_dps: float
+    speed_scale: float  # fit path length / ground-truth path length, all scenes pooled
+    per_scene: dict[str, SceneDrive] = field(default_factory=dict)
+
+
+def _yaw(world_from_ego: np.ndarray) -> float:
+    return math.atan2(world_from_ego[1, 0], world_from_ego[0, 0])
+
+
+def scene_drive(frames: Sequence[FrameRecord]) -> SceneDrive | None:
+    """The fit integrated over one scene's frames; None with fewer than two frames."""
+    if len(frames) < 2:
+        return None
+    t = np.array([f.timestamp_us for f in frames], dtype=np.float64) * 1e-6
+    twist = np.zeros((len(frames), 3))
+    held = np.zeros(3)
+    for k, f in enumerate(frames):
+        if f.valid and np.all(np.isfinite(f.twist)):
+            held = f.twist
+        twist[k] = held
+    dt = np.diff(t)
+    yaw_rate = twist[:, 2]
+    speed = np.hypot(twist[:, 0], twist[:, 1])
+    fit_yaw = float(np.sum(0.5 * (yaw_rate[1:] + yaw_rate[:-1]) * dt))
+    fit_path = float(np.sum(0.5 * (speed[1:] + speed[:-1]) * dt))
+    yaws = np.array([_yaw(f.world_from_ego) for f in frames])
+    dyaw = (np.diff(yaws) + np.pi) % (2 * np.pi) - np.pi  # summed steps: turns beyond 180 deg
+    xy = np.array([f.world_from_ego[:2, 3] for f in frames])
+    gt_path = float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum())
+    return SceneDrive(
+        duration_s=float(t[-1] - t[0]),
+        heading_error_deg=math.degrees(fit_yaw - float(dyaw.sum())),
+        gt_heading_change_deg=math.degrees(float(dyaw.sum())),
+        fit_path_m=fit_path,
+        gt_path_m=gt_path,
+    )
+
+
+def doppler_drive(scenes: Sequence[SceneRecord]) -> DopplerDrive:
+    per = {}
+    for sc in scenes:
+        d = scene_drive(sc.frames)
+        if d is not None:
+            per[sc.name] = d
+    rates = [abs(d.heading_error_deg) / d.duration_s for d in per.values() if d.duration_s > 0]
+    fit_path = sum(d.fit_path_m for d in per.values())
+    gt_path = sum(d.gt_path_m for d in per.values())
+    frames = [f for sc in scenes for f in sc.frames]
+    return DopplerDrive(
+        num_scenes=len(per),
+        valid_fraction=float(np.mean([f.valid for f in frames])) if frames else float("nan"),
+        heading_error_worst_dps=float(max(rates)) if rates else float("nan"),
+        heading_error_median_dps=float(np.median(rates)) if rates else float("nan"),
+        speed_scale=fit_path / gt_path if gt_path > 0 else float("nan"),
+        per_scene=per,
+    )
+
+
+@dataclass
+class PointDistribution:
+    """Range and RCS of the filtered points, and the share the Doppler fit calls moving."""
+
+    num_points: int
+    range_m: dict[str, float]  # p10, p50, p90
+    rcs_dbsm: dict[str, float]  # p10, p50, p90
+    moving_fraction: float  # of the points of sweeps with a valid fit: not Doppler-static
+
+
+def point_distribution(scenes: Sequence[SceneRecord]) -> PointDistribution:
+    sweeps = [s for s in _all_sweeps(scenes) if len(s)]
+    if not sweeps:
+        return PointDistribution(0, _percentiles(np.zeros(0)), _percentiles(np.zeros(0)), math.nan)
+    rng = np.concatenate([np.hypot(s.xyz[:, 0], s.xyz[:, 1]) for s in sweeps])
+    rcs = np.concatenate([s.rcs for s in sweeps])
+    fitted = [s for s in sweeps if s.fitted]
+    n_fit = sum(len(s) for s in fitted)
+    moving = sum(len(s) - int(s.static.sum()) for s in fitted)
+    return PointDistribution(
+        num_points=len(rng),
+        range_m=_percentiles(rng),
+        rcs_dbsm=_percentiles(rcs),
+        moving_fraction=moving / n_fit if n_fit else float("nan"),
+    )
 
 
 @dataclass
 class DatasetStats:
     dataroot: str
     version: str
-    num_scenes: int = 0
-    num_sweeps: int = 0
-    num_points: int = 0
-    points_per_sweep_mean: float = float("nan")
-    points_per_sweep_min: int = 0
-    points_per_sweep_max: int = 0
-    filtered_points_per_sweep_mean: float = float("nan")
-    filtered_fraction: float = float("nan")
-    range_percentiles_m: dict[str, float] = field(default_factory=dict)  # p5, p50, p95, max
-    rcs_percentiles_dbsm: dict[str, float] = field(default_factory=dict)  # p5, p50, p95
-    dyn_prop_hist: dict[int, float] = field(default_factory=dict)  # value -> fraction
-    invalid_state_hist: dict[int, float] = field(default_factory=dict)
-    ambig_state_hist: dict[int, float] = field(default_factory=dict)
-    moving_fraction: float = float("nan")
-    tangential_speed_p50_mps: float = float("nan")
-    doppler_oracle_rms_p50_mps: float = float("nan")  # median over sweeps of the per-sweep RMS
-    doppler_oracle_rms_p95_mps: float = float("nan")
-    redetect_next: float = float("nan")
-    redetect_within_3: float = float("nan")
-    redetect_sources: int = 0  # static points that had a next sweep to look in
-    empty_sweeps: int = 0  # sweeps read with no (finite) point
-    nan_points: int = 0  # points with NaN fields dropped by the reader in these scenes
+    num_scenes: int
+    num_frames: int
+    counts: PointCounts
+    redetection: Redetection
+    doppler: DopplerDrive
+    points: PointDistribution
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        for k in ("dyn_prop_hist", "invalid_state_hist", "ambig_state_hist"):
-            d[k] = {str(a): b for a, b in d[k].items()}
-        return d
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, allow_nan=True)
-
-    def to_markdown(self) -> str:
-        def f(x, fmt="{:.2f}"):
-            return (
-                "n/a"
-                if x is None or (isinstance(x, float) and not np.isfinite(x))
-                else fmt.format(x)
-            )
-
-        def pct(x):
-            return f(100 * x if x is not None else None, "{:.1f} %")
-
-        def hist(h):
-            top = sorted(h.items(), key=lambda kv: -kv[1])[:4]
-            return ", ".join(f"{k}: {100 * v:.0f} %" for k, v in top) or "n/a"
-
-        r, c = self.range_percentiles_m, self.rcs_percentiles_dbsm
-        rows = [
-            ("sweeps / points read", f"{self.num_sweeps} / {self.num_points}", ""),
-            (
-                "points per sweep (mean, min-max)",
-                f"{f(self.points_per_sweep_mean, '{:.1f}')} "
-                f"({self.points_per_sweep_min}-{self.points_per_sweep_max})",
-                REAL_NUSCENES["points_per_sweep"],
-            ),
-            (
-                "after default filters (mean)",
-                f"{f(self.filtered_points_per_sweep_mean, '{:.1f}')} "
-                f"({pct(self.filtered_fraction)})",
-                REAL_NUSCENES["points_per_sweep_filtered"],
-            ),
-            ("range p50 (m)", f(r.get("p50")), REAL_NUSCENES["range_p50_m"]),
-            (
-                "range p5 / p95 / max (m)",
-                " / ".join(f(r.get(k)) for k in ("p5", "p95", "max")),
-                f"max {REAL_NUSCENES['range_max_m']}",
-            ),
-            ("RCS p5 (dBsm)", f(c.get("p5")), REAL_NUSCENES["rcs_p5_dbsm"]),
-            ("RCS p50 (dBsm)", f(c.get("p50")), REAL_NUSCENES["rcs_p50_dbsm"]),
-            ("RCS p95 (dBsm)", f(c.get("p95")), REAL_NUSCENES["rcs_p95_dbsm"]),
-            (
-                "invalid_state = 0",
-                pct(self.invalid_state_hist.get(0, 0.0)),
-                REAL_NUSCENES["invalid_state_0"],
-            ),
-            ("invalid_state (top)", hist(self.invalid_state_hist), "4, 9, 11, 16 common"),
-            (
-                "ambig_state = 3",
-                pct(self.ambig_state_hist.get(3, 0.0)),
-                REAL_NUSCENES["ambig_state_3"],
-            ),
-            ("dyn_prop (top)", hist(self.dyn_prop_hist), REAL_NUSCENES["dyn_prop_mostly"]),
-            ("moving points (abs(u.v_comp) > 1 m/s)", pct(self.moving_fraction), "-"),
-            (
-                "tangential raw velocity p50, sensor moving (m/s)",
-                f(self.tangential_speed_p50_mps),
-                REAL_NUSCENES["tangential_p50_mps"],
-            ),
-            (
-                "Doppler oracle RMS p50 / p95 (m/s)",
-                f"{f(self.doppler_oracle_rms_p50_mps, '{:.3f}')} / "
-                f"{f(self.doppler_oracle_rms_p95_mps, '{:.3f}')}",
-                REAL_NUSCENES["doppler_oracle_rms_mps"],
-            ),
-            ("static landmark re-detected, next sweep", pct(self.redetect_next), "-"),
-            ("... within the next 3 sweeps", pct(self.redetect_within_3), "-"),
-            ("empty sweeps / NaN points skipped", f"{self.empty_sweeps} / {self.nan_points}", "-"),
-        ]
-        lines = [
-            f"Radar statistics of {self.dataroot} ({self.version}, {self.num_scenes} scenes)",
-            "",
-            "| statistic | measured | real nuScenes |",
-            "|---|---|---|",
-        ]
-        lines += [f"| {a} | {b} | {c_} |" for a, b, c_ in rows]
-        return "\n".join(lines) + "\n"
+        """Plain JSON types; NaN (a figure with nothing to measure) becomes null."""
+        return _nan_to_none(asdict(self))
 
 
-def _unit(xy: np.ndarray) -> np.ndarray:
-    r = np.linalg.norm(xy, axis=1, keepdims=True)
-    return xy / np.maximum(r, 1e-9)
-
-
-def _oracle_fit(sweep: RadarSweep) -> tuple[float, float] | None:
-    """(RMS residual of u . (v - v_comp) = -u . v_sensor, |v_sensor|), v_sensor fitted per sweep."""
-    if len(sweep) < 3:
-        return None
-    u = sweep.unit_directions
-    d = np.einsum("ij,ij->i", u, sweep.velocity - sweep.velocity_comp)
-    vs, *_ = np.linalg.lstsq(-u, d, rcond=None)
-    res = d + u @ vs
-    return float(np.sqrt(np.mean(res**2))), float(np.linalg.norm(vs))
-
-
-def _static_world(sweep: RadarSweep, default: RadarPointFilter) -> tuple[np.ndarray, np.ndarray]:
-    """(static points, all points) of a sweep after the default filters, in world xy."""
-    s = sweep.with_points(default.apply(sweep.points))
-    if len(s) == 0:
-        z = np.zeros((0, 2))
-        return z, z
-    u = s.unit_directions
-    static = np.abs(np.einsum("ij,ij->i", u, s.velocity_comp)) <= MOVING_SPEED_MPS
-    w = s.xy @ s.world_from_sensor[:2, :2].T + s.world_from_sensor[:2, 3]
-    return w[static], w
-
-
-def _has_neighbour(src: np.ndarray, dst: np.ndarray, radius: float) -> np.ndarray:
-    if len(src) == 0 or len(dst) == 0:
-        return np.zeros(len(src), dtype=bool)
-    d2 = ((src[:, None, :] - dst[None, :, :]) ** 2).sum(-1)
-    return d2.min(axis=1) <= radius * radius
+def statistics_of(
+    scenes: Sequence[SceneRecord], dataroot: str = "", version: str = ""
+) -> DatasetStats:
+    """Every figure of already read scenes."""
+    return DatasetStats(
+        dataroot=dataroot,
+        version=version,
+        num_scenes=len(scenes),
+        num_frames=sum(len(sc.frames) for sc in scenes),
+        counts=point_counts(scenes),
+        redetection=redetection(scenes),
+        doppler=doppler_drive(scenes),
+        points=point_distribution(scenes),
+    )
 
 
 def dataset_statistics(
     reader,
     scenes: Sequence[str] | None = None,
-    max_sweeps_per_scene: int | None = None,
+    max_frames_per_scene: int | None = None,
     progress: bool = True,
+    desc: str = "radar statistics",
 ) -> DatasetStats:
     """Statistics of the radar sweeps of ``scenes`` (default: all) of a :class:`NuScenesRadar`.
 
-    ``max_sweeps_per_scene`` caps the sweeps read per radar and scene (the first ones in time).
-    """
+    ``max_frames_per_scene`` keeps the first frames of each scene (one sweep per radar each)."""
     from tqdm import tqdm
 
-    default = RadarPointFilter.devkit_default()
-    none = RadarPointFilter.none()
     infos = [reader.scene(s) for s in scenes] if scenes else reader.scenes()
-    counts, counts_f = [], []
-    ranges, rcs, dyn, inval, ambig = [], [], [], [], []
-    moving, tangential, oracle = [], [], []
-    hit1, hit3, n_src = 0, 0, 0
-    for info in tqdm(
-        infos, desc="radar statistics", unit="scene", disable=None if progress else True
-    ):
-        for ch in RADAR_CHANNELS:
-            window: list[tuple[np.ndarray, np.ndarray]] = []  # (static, all) world xy per sweep
-            for k, sweep in enumerate(reader.iter_sweeps(info, ch, filters=none)):
-                if max_sweeps_per_scene is not None and k >= max_sweeps_per_scene:
-                    break
-                p = sweep.points
-                counts.append(len(p))
-                counts_f.append(int(default.mask(p).sum()))
-                if len(p):
-                    xy, u = sweep.xy, sweep.unit_directions
-                    ranges.append(np.linalg.norm(xy, axis=1))
-                    rcs.append(p["rcs"].astype(np.float64))
-                    dyn.append(p["dyn_prop"])
-                    inval.append(p["invalid_state"])
-                    ambig.append(p["ambig_state"])
-                    moving.append(np.abs(np.einsum("ij,ij->i", u, sweep.velocity_comp)) > 1.0)
-                    o = _oracle_fit(sweep)
-                    if o is not None:
-                        oracle.append(o[0])
-                    # The real reference figure comes from a moving car: a standing ego (a
-                    # quarter of the time in the city) would pull the median towards 0.
-                    if o is not None and o[1] > TANGENTIAL_MIN_SENSOR_SPEED_MPS:
-                        perp = np.column_stack([-u[:, 1], u[:, 0]])
-                        tangential.append(np.abs(np.einsum("ij,ij->i", perp, sweep.velocity)))
-                window.append(_static_world(sweep, default))
-                # the sweep REDETECT_LOOKAHEAD back now has all its look-ahead sweeps
-                if len(window) > REDETECT_LOOKAHEAD:
-                    a, b, c = _redetect(window[0][0], [w[1] for w in window[1:]])
-                    hit1, hit3, n_src = hit1 + a, hit3 + b, n_src + c
-                    window.pop(0)
-            while len(window) > 1:  # the last sweeps of the chain, with fewer sweeps after them
-                a, b, c = _redetect(window[0][0], [w[1] for w in window[1:]])
-                hit1, hit3, n_src = hit1 + a, hit3 + b, n_src + c
-                window.pop(0)
-
-    st = DatasetStats(dataroot=str(reader.dataroot), version=reader.version, num_scenes=len(infos))
-    st.num_sweeps = len(counts)
-    st.num_points = int(sum(counts))
-    st.empty_sweeps = sum(1 for c in counts if c == 0)
-    # NaN points are dropped inside the reader; its per-scene counts cover each sweep once
-    st.nan_points = sum(
-        reader.skip_counts.per_scene.get(i.name, {}).get("nan_points", 0) for i in infos
-    )
-    if counts:
-        st.points_per_sweep_mean = float(np.mean(counts))
-        st.points_per_sweep_min, st.points_per_sweep_max = int(min(counts)), int(max(counts))
-        st.filtered_points_per_sweep_mean = float(np.mean(counts_f))
-        st.filtered_fraction = float(sum(counts_f) / max(sum(counts), 1))
-    if ranges:
-        rng_all, rcs_all = np.concatenate(ranges), np.concatenate(rcs)
-        st.range_percentiles_m = {
-            "p5": float(np.percentile(rng_all, 5)),
-            "p50": float(np.percentile(rng_all, 50)),
-            "p95": float(np.percentile(rng_all, 95)),
-            "max": float(rng_all.max()),
-        }
-        st.rcs_percentiles_dbsm = {f"p{q}": float(np.percentile(rcs_all, q)) for q in (5, 50, 95)}
-        for name, parts in (
-            ("dyn_prop_hist", dyn),
-            ("invalid_state_hist", inval),
-            ("ambig_state_hist", ambig),
-        ):
-            vals, cnt = np.unique(np.concatenate(parts), return_counts=True)
-            setattr(
-                st, name, {int(v): float(c / cnt.sum()) for v, c in zip(vals, cnt, strict=True)}
+    point_filter, estimator = odometry_inputs()
+    total = 0
+    for info in infos:
+        n = len(reader.frame_groups(info))
+        total += n if max_frames_per_scene is None else min(n, max_frames_per_scene)
+    # delay: quick runs (a few scenes) print no bar at all
+    with tqdm(
+        total=total, desc=desc, unit="frame", delay=2.0, disable=None if progress else True
+    ) as bar:
+        records = [
+            read_scene(
+                reader,
+                info,
+                point_filter,
+                estimator,
+                max_frames=max_frames_per_scene,
+                on_frame=lambda: bar.update(1),
             )
-        st.moving_fraction = float(np.concatenate(moving).mean())
-        st.tangential_speed_p50_mps = float(np.median(np.concatenate(tangential)))
-    if oracle:
-        st.doppler_oracle_rms_p50_mps = float(np.median(oracle))
-        st.doppler_oracle_rms_p95_mps = float(np.percentile(oracle, 95))
-    if n_src:
-        st.redetect_next = hit1 / n_src
-        st.redetect_within_3 = hit3 / n_src
-        st.redetect_sources = n_src
-    return st
-
-
-def _redetect(static_src: np.ndarray, later: list[np.ndarray]) -> tuple[int, int, int]:
-    """(# re-detected in the next sweep, # within the next 3, # sources) for one sweep."""
-    if len(static_src) == 0 or not later:
-        return 0, 0, 0
-    nxt = _has_neighbour(static_src, later[0], REDETECT_RADIUS_M)
-    any3 = nxt.copy()
-    for dst in later[1:REDETECT_LOOKAHEAD]:
-        any3 |= _has_neighbour(static_src, dst, REDETECT_RADIUS_M)
-    return int(nxt.sum()), int(any3.sum()), len(static_src)
+            for info in infos
+        ]
+    return statistics_of(records, str(reader.dataroot), reader.version)

@@ -1,8 +1,11 @@
-"""Dataset statistics and the ``radarslam stats`` command on the hand-made dataroot."""
+"""Radar statistics (radarslam.nuscenes.stats) and the ``radarslam stats`` command."""
 
 from __future__ import annotations
 
 import json
+import math
+import re
+import signal
 import subprocess
 import sys
 
@@ -12,56 +15,133 @@ import typer
 from typer.testing import CliRunner
 
 from radarslam.nuscenes import commands
-from radarslam.nuscenes.filters import RadarPointFilter
 from radarslam.nuscenes.pcd import read_pcd
-from radarslam.nuscenes.stats import REAL_NUSCENES, dataset_statistics
+from radarslam.nuscenes.reader import NuScenesRadar
+from radarslam.nuscenes.stats import (
+    FrameRecord,
+    SceneRecord,
+    SweepRecord,
+    dataset_statistics,
+    odometry_inputs,
+    point_distribution,
+    redetection,
+    scene_drive,
+)
+from radarslam.types import RADAR_CHANNELS
 
 
-def test_statistics_pinned_and_independent(mini, reader):
-    st = dataset_statistics(reader, progress=False)
-    assert (st.num_scenes, st.num_sweeps, st.num_points) == (4, 769, 42929)  # pinned
-    assert (st.empty_sweeps, st.nan_points) == (2, 3)
-    # independent recount from the files
-    pts = np.concatenate([read_pcd(p) for p in sorted(mini.dataroot.rglob("*.pcd"))])
-    pts = pts[np.isfinite(pts["vx_comp"])]
-    assert len(pts) == st.num_points
-    assert st.filtered_fraction == pytest.approx(
-        RadarPointFilter.devkit_default().mask(pts).mean(), abs=1e-12
+def _pose(yaw_deg: float = 0.0, x: float = 0.0, y: float = 0.0) -> np.ndarray:
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:2, 3] = x, y
+    return m
+
+
+def _sweep(xy, static=None, pose=None, fitted=True, raw=None) -> SweepRecord:
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    return SweepRecord(
+        channel="RADAR_FRONT",
+        timestamp_us=0,
+        raw_count=len(xy) if raw is None else raw,
+        xyz=np.column_stack([xy, np.zeros(len(xy))]),
+        rcs=np.zeros(len(xy)),
+        static=np.zeros(len(xy), bool) if static is None else np.asarray(static, bool),
+        fitted=fitted,
+        world_from_sensor=_pose() if pose is None else pose,
     )
-    xy = np.column_stack([pts["x"], pts["y"]]).astype(float)
-    u = xy / np.linalg.norm(xy, axis=1, keepdims=True)
-    vr_comp = np.abs((u * np.column_stack([pts["vx_comp"], pts["vy_comp"]])).sum(1))
-    assert st.moving_fraction == pytest.approx((vr_comp > 1.0).mean(), abs=1e-12)
-    assert st.range_percentiles_m["p50"] == pytest.approx(np.median(np.hypot(xy[:, 0], xy[:, 1])))
-    assert st.invalid_state_hist[0] == pytest.approx((pts["invalid_state"] == 0).mean())
-    assert sum(st.dyn_prop_hist.values()) == pytest.approx(1.0)
-    # the synthetic files satisfy the Doppler oracle exactly, like real ones
-    assert st.doppler_oracle_rms_p95_mps < 1e-5
-    # exact static landmarks: nearly all re-detected (misses are FOV/range exits)
-    assert st.redetect_next == pytest.approx(0.99004, abs=1e-4)
-    assert st.redetect_within_3 >= st.redetect_next
-    md = st.to_markdown()
-    assert "| statistic | measured | real nuScenes |" in md
-    assert REAL_NUSCENES["tangential_p50_mps"] in md and "2 / 3" in md
-    assert json.loads(st.to_json())["num_sweeps"] == 769
 
 
-def test_statistics_detect_a_broken_oracle_and_cap(mini, clone):
-    from radarslam.nuscenes.reader import NuScenesRadar
+def test_redetection_moves_points_with_the_poses():
+    # sweep 0 at the origin; sweep 1 turned by 90 deg: a static point at (10, 0) is then at
+    # (0, -10) in its frame, one at (0, 20) at (20, 0); sweep 2 is also 5 m further along x.
+    chain = [
+        _sweep([(10, 0), (0, 20), (30, 0)], static=[True, True, False]),
+        _sweep([(0.3, -10.2), (25, 0)], pose=_pose(90)),  # first found, second 5 m off
+        _sweep([(20.5, 5.0)], pose=_pose(90, x=5)),  # the second, two sweeps later
+        _sweep([]),
+    ]
+    scene = SceneRecord("s", {"RADAR_FRONT": chain}, [])
+    r = redetection([scene], radius_m=1.0, lookahead=3)
+    assert (r.next, r.within, r.sources_next, r.sources_within) == (0.5, 1.0, 2, 2)
+    assert r.per_radar_next["RADAR_FRONT"] == 0.5 and math.isnan(
+        r.per_radar_next["RADAR_BACK_LEFT"]
+    )
+    # a point with fewer than three later sweeps counts for "next" only
+    short = redetection([SceneRecord("s", {"RADAR_FRONT": chain[:3]}, [])], lookahead=3)
+    assert (short.sources_next, short.sources_within) == (2, 0) and math.isnan(short.within)
+    # moving fraction: points of sweeps with a valid fit that are not static
+    d = point_distribution(
+        [SceneRecord("s", {"RADAR_FRONT": [*chain, _sweep([(1, 1)], fitted=False)]}, [])]
+    )
+    assert d.num_points == 7 and d.moving_fraction == pytest.approx(4 / 6)
+    assert d.range_m["p50"] == pytest.approx(20.0)  # of 1.4, 10, 10.2, 20, 21.1, 25, 30
 
-    root = clone(copy_files=True)
-    tok = mini.sweeps[("scene-0003", "RADAR_FRONT")][0]
-    r = NuScenesRadar(root, "v1.0-mini", use_cache=False)
-    path = root / r.load_sweep(tok).filename
-    from radarslam.nuscenes.pcd import write_pcd
 
-    pts = read_pcd(path)
-    # per-point errors cannot be one sensor velocity (a constant offset could): the oracle breaks
-    pts["vx_comp"] += np.random.default_rng(0).normal(0.0, 1.0, len(pts)).astype(np.float32)
-    write_pcd(path, pts)
-    st = dataset_statistics(r, scenes=["scene-0003"], max_sweeps_per_scene=2, progress=False)
-    assert st.num_sweeps == 10
-    assert st.doppler_oracle_rms_p95_mps > 0.3  # 1 broken sweep of 10
+def test_scene_drive_integrates_the_fit_against_the_ground_truth():
+    # a 25 m circle at 5 m/s (0.2 rad/s) for 2 s; the fit's yaw rate is 0.01 rad/s too high and
+    # one frame's fit is invalid (its twist of 0 is replaced by the last valid one)
+    t = np.arange(21) * 0.1
+    frames = []
+    for k, tk in enumerate(t):
+        th = 0.2 * tk
+        gt = _pose(math.degrees(th), 25 * math.sin(th), 25 * (1 - math.cos(th)))
+        valid = k != 5
+        twist = np.array([5.0, 0.0, 0.21]) if valid else np.zeros(3)
+        frames.append(FrameRecord(round(tk * 1e6), valid, twist, gt))
+    d = scene_drive(frames)
+    assert d.duration_s == pytest.approx(2.0)
+    assert d.gt_heading_change_deg == pytest.approx(math.degrees(0.4))
+    assert d.heading_error_deg == pytest.approx(math.degrees(0.02), abs=1e-9)
+    assert d.fit_path_m == pytest.approx(10.0) and d.gt_path_m == pytest.approx(10.0, rel=1e-4)
+    assert scene_drive(frames[:1]) is None
+
+
+def test_statistics_pinned_on_tiny(tiny_dataroot):
+    reader = NuScenesRadar(tiny_dataroot, "v1.0-mini", use_cache=False)
+    st = dataset_statistics(reader, progress=False)
+    c, r, d, p = st.counts, st.redetection, st.doppler, st.points
+    assert (st.num_scenes, st.num_frames, c.num_sweeps) == (2, 230, 1147)
+    assert (c.mean, c.raw_mean) == (
+        pytest.approx(64.33043, abs=1e-4),
+        pytest.approx(124.25545, abs=1e-4),
+    )
+    assert (c.p10, c.p50, c.p90, c.empty_fraction) == (47.0, 65.0, 80.0, 0.0)
+    assert r.next == pytest.approx(0.35567, abs=1e-4) and r.within == pytest.approx(
+        0.53832, abs=1e-4
+    )
+    assert r.sources_next == 68313
+    assert d.heading_error_worst_dps == pytest.approx(0.19767, abs=1e-4)
+    assert d.speed_scale == pytest.approx(0.99936, abs=1e-4) and d.valid_fraction == 1.0
+    assert p.range_m["p50"] == pytest.approx(41.687, abs=1e-2)
+    assert (p.rcs_dbsm["p10"], p.rcs_dbsm["p50"], p.rcs_dbsm["p90"]) == (-2.0, 5.0, 14.0)
+    assert p.moving_fraction == pytest.approx(0.06237, abs=1e-4)
+    assert c.per_radar_mean["RADAR_BACK_LEFT"] == pytest.approx(75.690, abs=1e-3)
+
+    # independent recount from the files: every sweep of every radar, once
+    filt = odometry_inputs()[0]
+    n_raw, n_kept = [], []
+    for info in reader.scenes():
+        for ch in RADAR_CHANNELS:
+            for tok in reader.sweep_tokens(info, ch):
+                pts = read_pcd(tiny_dataroot / reader.load_sweep(tok).filename)
+                pts = pts[np.isfinite(pts["vx_comp"])]
+                n_raw.append(len(pts))
+                n_kept.append(int(filt.mask(pts).sum()))
+    assert len(n_raw) == c.num_sweeps
+    assert c.raw_mean == pytest.approx(np.mean(n_raw)) and c.mean == pytest.approx(np.mean(n_kept))
+    assert (c.p10, c.p90) == tuple(np.percentile(n_kept, [10, 90]))
+    json.dumps(st.to_dict(), allow_nan=False)  # NaN-free JSON
+
+
+def test_empty_sweeps_and_nan_points_on_the_hand_made_dataroot(reader):
+    st = dataset_statistics(reader, progress=False)
+    assert st.counts.num_sweeps == 769  # every sweep of every radar, also those in no frame
+    assert st.counts.empty_fraction >= 2 / 769  # two sweeps carry no finite point at all
+    partial = dataset_statistics(
+        reader, scenes=["scene-0003"], max_frames_per_scene=2, progress=False
+    )
+    assert partial.num_frames == 2 and partial.counts.num_sweeps == 10
 
 
 def _app() -> typer.Typer:
@@ -71,17 +151,95 @@ def _app() -> typer.Typer:
     return app
 
 
-def test_stats_command(mini, tmp_path):
-    out = tmp_path / "s.json"
+def test_stats_command_one_column(tiny_dataroot, tmp_path):
+    res = CliRunner().invoke(_app(), ["stats", str(tiny_dataroot), "--max-sweeps", "20"])
+    assert res.exit_code == 0, res.output
+    assert "| statistic | value |" in res.output and "reference" not in res.output
+    assert "| points per sweep after filters, p10 |" in res.output
+    assert "| per radar F/FL/FR/BL/BR: points per sweep after filters, mean |" in res.output
+
+
+def test_stats_command_against_itself(tiny_dataroot, tmp_path):
+    out = tmp_path / "cmp.json"
     res = CliRunner().invoke(
         _app(),
-        ["stats", str(mini.dataroot), "--scenes", "scene-0001,scene-0003", "--max-sweeps", "5",
-         "--json", str(out)],
-    )  # fmt: skip
+        ["stats", str(tiny_dataroot), "--reference", str(tiny_dataroot), "--json", str(out)],
+    )
     assert res.exit_code == 0, res.output
-    assert "| range p50 (m) |" in res.output
+    rows = [line for line in res.output.splitlines() if line.startswith("| ") and "---" not in line]
+    assert rows[0] == "| statistic | dataroot | reference | ratio (dataroot / reference) |"
+    assert len(rows) == 1 + len(commands._ROWS) + len(commands._RADAR_ROWS)
+    for line in rows[1:]:
+        ratios = line.rstrip(" |").rsplit("| ", 1)[1].split(" / ")
+        assert all(x in ("1.00", "+0.0 dB") for x in ratios), line
+        value, ref = line.split(" | ")[1:3]
+        assert value == ref
     data = json.loads(out.read_text())
-    assert data["num_scenes"] == 2 and data["num_sweeps"] == 50
+    assert data["dataroot"] == data["reference"]
+    table = {row["key"]: row for row in data["comparison"]}
+    assert table["mean"]["value"] == pytest.approx(64.33043, abs=1e-4)
+    assert {row["ratio"] for row in data["comparison"] if row["kind"] != "dB"} == {1.0}
+    assert {row["ratio"] for row in data["comparison"] if row["kind"] == "dB"} == {0.0}
+    assert "radar_redetect_next.RADAR_FRONT_LEFT" in table
+    assert not list(tmp_path.glob(".*"))  # the atomic write left no temporary file
+
+
+def _main(argv: list[str], capsys) -> tuple[object, str]:
+    from radarslam import cli
+
+    old_term, old_argv = signal.getsignal(signal.SIGTERM), sys.argv
+    sys.argv = ["radarslam", *argv]
+    try:
+        try:
+            cli.main()
+            code = 0
+        except SystemExit as exc:
+            code = exc.code
+    finally:
+        sys.argv = old_argv
+        signal.signal(signal.SIGTERM, old_term)
+    return code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("extra", "expected"),
+    [
+        (["--reference", "{missing}"], r"error: .*missing: dataroot does not exist"),
+        (
+            ["--reference", "{root}", "--reference-version", "v1.0-trainval"],
+            r"error: .*v1\.0-trainval: version folder is missing",
+        ),
+        (
+            ["--reference-version", "v1.0-mini"],
+            r"error: --reference-version 'v1.0-mini': given without --reference",
+        ),
+        (
+            ["--reference", "{root}", "--reference-scenes", "scene-9"],
+            r"error: unknown scene 'scene-9'",
+        ),
+        (["--json", "{tmp}"], r"error: --json .*: is a folder, not a file"),
+    ],
+)
+def test_bad_reference_is_one_error_line(tiny_dataroot, tmp_path, capsys, extra, expected):
+    fill = {"missing": str(tmp_path / "missing"), "root": str(tiny_dataroot), "tmp": str(tmp_path)}
+    argv = ["stats", str(tiny_dataroot), *(a.format(**fill) for a in extra)]
+    code, err = _main(argv, capsys)
+    assert code == 2, err
+    assert len(err.strip().splitlines()) == 1 and re.match(expected, err.strip()), err
+
+
+def test_real_radar_statistics(real_dataroot):
+    st = dataset_statistics(NuScenesRadar(real_dataroot, "v1.0-mini"), progress=False)
+    c, r = st.counts, st.redetection
+    assert 30 < c.mean < 50 and c.p10 < c.p50 < c.p90  # real sweeps: 41 on average, p10 8
+    assert 70 < c.raw_mean < 100 and c.empty_fraction < 0.05
+    assert 0.5 < r.next < 0.7 and r.next < r.within < 0.9
+    assert 0.95 < st.doppler.speed_scale < 1.05
+    assert 0.3 < st.doppler.heading_error_worst_dps < 3  # one scene drifts ~23 deg in 20 s
+    assert 0.02 < st.points.moving_fraction < 0.2
+    # the front corner radars see far fewer points than the others
+    per = c.per_radar_mean
+    assert per["RADAR_FRONT_LEFT"] < 0.5 * per["RADAR_FRONT"]
 
 
 def test_cli_module_stays_light():
