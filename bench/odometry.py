@@ -130,6 +130,13 @@ def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
                 [r.doppler.yaw_rate_radps if r.doppler.valid else np.nan for r in res]
             )
         if method == "ours":
+            out["calibration"] = odo.calibration.as_dict()
+            mounting = out["calibration"].get("mounting_yaw_error_deg")
+            if mounting:
+                # The Doppler fit again, with the mounting yaws ours estimated on this segment.
+                recal = cfg.model_copy(update={"mounting_yaw_deg": mounting})
+                dr = make_odometry("doppler", recal)
+                out["doppler_calibrated"] = np.array([dr.process(f).world_from_ego for f in frames])
             kf = [i for i, r in enumerate(res) if r.key_frame_motion is not None]
             out["kf_index"] = np.array(kf, dtype=int)
             out["kf_motion"] = np.array([res[i].key_frame_motion for i in kf]).reshape(-1, 4, 4)
@@ -218,10 +225,10 @@ def _public(row: dict) -> dict:
     return out
 
 
-def heading_check(r: dict) -> dict:
+def heading_check(r: dict, key: str = "doppler") -> dict:
     """The Doppler fit's yaw rate integrated over the segment (zero-velocity updates included, as
     the dead reckoning does) against the ground truth's heading change."""
-    yaw_dr = _yaw(r["doppler"])
+    yaw_dr = _yaw(r[key])
     yaw_gt = _yaw(r["gt"])
     duration = float((r["t"][-1] - r["t"][0]) * 1e-6)
     err = float(np.degrees((yaw_dr[-1] - yaw_dr[0]) - (yaw_gt[-1] - yaw_gt[0])))
@@ -326,13 +333,37 @@ def evaluate(name: str, dataroot: Path, version: str, scenes: list[str] | None, 
     }
     pool_rows = {mm: pooled([rows[mm] for rows in per_scene.values()]) for mm in METHODS}
     print_table(f"{name}: {dataroot} ({version})", per_scene, pool_rows)
-    heading = {_label(r["scenes"]): heading_check(r) for r in results}
-    print("\nDoppler heading over each scene (deg): fit, ground truth, error, bound")
+    raw_heading = {_label(r["scenes"]): heading_check(r) for r in results}
+    calibrated = all("doppler_calibrated" in r for r in results)
+    heading = (
+        {_label(r["scenes"]): heading_check(r, "doppler_calibrated") for r in results}
+        if calibrated
+        else raw_heading
+    )
+    print(
+        "\nDoppler heading over each scene (deg): ground truth, nominal calibration's fit and "
+        "error"
+        + (", fit and error with the mounting yaws ours estimated" if calibrated else "")
+        + ", bound"
+    )
     for s, h in heading.items():
+        raw = raw_heading[s]
+        cal = f" {h['doppler_heading_deg']:>8.1f} {h['error_deg']:>+7.1f}" if calibrated else ""
         print(
-            f"  {s:<12} {h['doppler_heading_deg']:>8.1f} {h['gt_heading_deg']:>8.1f} "
-            f"{h['error_deg']:>+7.1f} {h['bound_deg']:>6.1f}"
+            f"  {s:<12} {h['gt_heading_deg']:>8.1f} {raw['doppler_heading_deg']:>8.1f} "
+            f"{raw['error_deg']:>+7.1f}{cal} {h['bound_deg']:>6.1f}"
         )
+    cals = {_label(r["scenes"]): r["calibration"] for r in results}
+    print("\nDoppler calibration ours estimated per scene:")
+    for s, c in cals.items():
+        if "mounting_yaw_error_deg" in c:
+            vals = " ".join(
+                f"{ch.removeprefix('RADAR_')} {v:+.2f}+-{c['mounting_yaw_sigma_deg'][ch]:.2f}"
+                for ch, v in c["mounting_yaw_error_deg"].items()
+            )
+            print(f"  {s:<12} mounting yaw deg: {vals}")
+        else:
+            print(f"  {s:<12} {c}")
     nees = np.concatenate([key_frame_nees(r) for r in results])
     frames = sum(len(r["t"]) for r in results)
     read_ms = float(
@@ -352,6 +383,8 @@ def evaluate(name: str, dataroot: Path, version: str, scenes: list[str] | None, 
         "scenes": {s: {mm: _public(x) for mm, x in rows.items()} for s, rows in per_scene.items()},
         "pooled": pool_rows,
         "doppler_heading": heading,
+        "doppler_heading_nominal_calibration": raw_heading,
+        "doppler_calibration": cals,
         "key_frame_nees_mean": float(np.nanmean(nees)) if nees.size else None,
         "key_frame_nees_median": float(np.nanmedian(nees)) if nees.size else None,
         "ours_realtime_factor": realtime,

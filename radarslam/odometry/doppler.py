@@ -45,7 +45,7 @@ import numpy as np
 from pydantic import Field
 
 from radarslam.config import StrictModel
-from radarslam.types import RadarFrame, RadarSweep
+from radarslam.types import RADAR_CHANNELS, RadarFrame, RadarSweep
 
 #: Smallest eigenvalue of ``A^T A / n`` (directions only) below which the velocity is unobservable:
 #: about the spread of lines of sight within +-1.8 degrees.
@@ -89,6 +89,8 @@ class EgoMotionFit:
     residual_rms_mps: float = float("nan")  # RMS Doppler residual of the inliers
     yaw_rate_observable: bool = True  # False when only the weak zero prior held the yaw rate
     channels: tuple[str, ...] = field(default=())
+    #: (3, 5) d twist / d mounting yaw of each radar (RADAR_CHANNELS order); zeros when unknown.
+    mounting_jacobian: np.ndarray = field(default_factory=lambda: np.zeros((3, 5)))
 
     @property
     def twist(self) -> np.ndarray:
@@ -371,6 +373,9 @@ class DopplerEstimator:
             masks[sweeps[k].channel][sel] = inl[start : start + cnt]
             start += cnt
         res = a[inl] @ x - b[inl]
+        mount = self._mounting_jacobian(
+            a, b, x, inl, radar_of, [sweeps[k].channel for k, _ in owner], levers=np.array(lever)
+        )
         return EgoMotionFit(
             velocity_mps=x[:2].copy(),
             yaw_rate_radps=float(x[2]),
@@ -383,7 +388,31 @@ class DopplerEstimator:
             residual_rms_mps=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"),
             yaw_rate_observable=yaw_obs,
             channels=channels,
+            mounting_jacobian=mount,
         )
+
+    def _mounting_jacobian(self, a, b, x, inl, radar_of, channels, levers) -> np.ndarray:
+        """(3, 5) derivative of the least-squares twist with respect to each radar's mounting
+        yaw (columns in RADAR_CHANNELS order): turning radar i by d turns its lines of sight u to
+        u + d (-u_y, u_x), which changes its rows of the linear system; the twist moves by
+        (A^T A)^-1 sum_p (da_p r_p - a_p (da_p . x)) over its inliers p."""
+        out = np.zeros((3, len(RADAR_CHANNELS)))
+        if not inl.any() or not np.any(x):
+            return out
+        ai, bi, ri = a[inl], b[inl], radar_of[inl]
+        t = levers[ri]  # (-t_y, t_x) per point
+        da = np.empty_like(ai)
+        da[:, 0] = -ai[:, 1]
+        da[:, 1] = ai[:, 0]
+        da[:, 2] = ai[:, 0] * t[:, 1] - ai[:, 1] * t[:, 0]
+        resid = bi - ai @ x
+        terms = da * resid[:, None] - ai * (da @ x)[:, None]
+        m = np.linalg.inv(ai.T @ ai + self._prior() * self.config.noise_floor_mps**2)
+        for k, ch in enumerate(channels):
+            sel = ri == k
+            if sel.any():
+                out[:, RADAR_CHANNELS.index(ch)] = m @ terms[sel].sum(axis=0)
+        return out
 
     def _invalid_frame(
         self, sizes: Mapping[str, int], channels: tuple[str, ...], num_points: int

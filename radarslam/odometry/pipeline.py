@@ -43,6 +43,7 @@ the process when it does, dependencies.md pitfall 4).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -55,7 +56,7 @@ from radarslam.odometry.config import OdometryConfig
 from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit
 from radarslam.odometry.lie import adjoint_se2, exp_jacobian_twist, exp_se2, log_se2, planar
 from radarslam.odometry.registration import RegistrationResult, ScanToMapRegistration
-from radarslam.types import RadarFrame
+from radarslam.types import RADAR_CHANNELS, RadarFrame
 
 
 @dataclass(frozen=True)
@@ -94,21 +95,30 @@ class OdometryResult:
 
 @dataclass(frozen=True)
 class DopplerCalibration:
-    """The Doppler calibration the fusion filter has estimated so far (its state and sigma)."""
+    """The Doppler calibration the fusion filter has estimated so far: each state's value and
+    sigma. ``yaw_bias_model`` says which yaw states exist: "per_metre" (rad/m), "rate" (rad/s),
+    "mounting" (one mounting-yaw error per radar, rad) or "none"."""
 
-    yaw_bias_model: str  # "per_metre" (rad/m), "rate" (rad/s) or "none"
-    yaw_bias: float
-    yaw_bias_sigma: float
+    yaw_bias_model: str
+    yaw_states: tuple[float, ...]
+    yaw_sigmas: tuple[float, ...]
     speed_scale_error: float  # true speed = Doppler speed x (1 + this)
     speed_scale_sigma: float
 
     def as_dict(self) -> dict:
-        unit = {"per_metre": "deg_per_100m", "rate": "deg_per_s"}.get(self.yaw_bias_model)
-        scale = 100.0 if self.yaw_bias_model == "per_metre" else 1.0
         out: dict = {"yaw_bias_model": self.yaw_bias_model}
-        if unit is not None:
-            out[f"yaw_bias_{unit}"] = math.degrees(self.yaw_bias) * scale
-            out[f"yaw_bias_sigma_{unit}"] = math.degrees(self.yaw_bias_sigma) * scale
+        deg = [math.degrees(v) for v in self.yaw_states]
+        deg_sig = [math.degrees(v) for v in self.yaw_sigmas]
+        if self.yaw_bias_model == "mounting":
+            out["mounting_yaw_error_deg"] = dict(zip(RADAR_CHANNELS, deg, strict=True))
+            out["mounting_yaw_sigma_deg"] = dict(zip(RADAR_CHANNELS, deg_sig, strict=True))
+        elif self.yaw_bias_model == "per_metre":
+            out["yaw_bias_deg_per_100m"] = 100.0 * deg[0]
+            out["yaw_bias_sigma_deg_per_100m"] = 100.0 * deg_sig[0]
+        elif self.yaw_bias_model == "rate":
+            out["yaw_bias_deg_per_s"] = deg[0]
+            out["yaw_bias_sigma_deg_per_s"] = deg_sig[0]
+        if self.yaw_bias_model != "none":
             out["speed_scale_error"] = self.speed_scale_error
             out["speed_scale_sigma"] = self.speed_scale_sigma
         return out
@@ -236,12 +246,18 @@ class RadarOdometry:
         self._growth = np.diag(self.config.fusion.invalid_doppler_growth)
         self._twist_floor = np.diag(np.square(self.config.fusion.twist_sigma_floor))
         cal = self.config.fusion.calibration
-        self._calib_q = np.diag(np.square([cal.yaw_bias_walk, cal.speed_scale_walk]))
         #: Doppler calibration estimated by the filter, kept across segments (it belongs to the
-        #: car): yaw-rate bias (rad/s, or rad/m with ``yaw_bias_model: per_metre``) and speed
-        #: scale error.
-        self._calib = np.zeros(2)
-        self._calib_cov = np.diag(np.square([cal.yaw_bias_prior, cal.speed_scale_prior]))
+        #: car): the yaw-rate bias (rad/m or rad/s), or with ``yaw_bias_model: mounting`` the
+        #: five radars' mounting-yaw errors (rad, RADAR_CHANNELS order); then the speed-scale
+        #: error.
+        n_yaw = len(RADAR_CHANNELS) if cal.yaw_bias_model == "mounting" else 1
+        self._calib = np.zeros(n_yaw + 1)
+        self._calib_cov = np.diag(np.square([cal.yaw_bias_prior] * n_yaw + [cal.speed_scale_prior]))
+        self._calib_q = np.diag(np.square([cal.yaw_bias_walk] * n_yaw + [cal.speed_scale_walk]))
+        self._mounting = {
+            ch: exp_se2(np.array([0.0, 0.0, math.radians(deg)]))
+            for ch, deg in self.config.mounting_yaw_deg.items()
+        }
         #: Bytes of the ego_from_sensor matrices already checked rigid: the calibration
         #: of a radar repeats in every sweep, so each is checked once, not 5 times a frame.
         self._good_calibrations: set[tuple[str, bytes]] = set()
@@ -252,7 +268,8 @@ class RadarOdometry:
         self._registration: ScanToMapRegistration | None = None
         self._pose: np.ndarray | None = None
         self._cov = np.zeros((3, 3))
-        self._cross = np.zeros((3, 2))  # covariance of the pose error with the calibration's
+        # covariance of the pose error with the calibration's
+        self._cross = np.zeros((3, len(self._calib)))
         self._t_us: int | None = None
         self._twist = np.zeros(3)
         self._twist_cov = np.eye(3)
@@ -268,10 +285,10 @@ class RadarOdometry:
         sig = np.sqrt(np.diag(self._calib_cov))
         return DopplerCalibration(
             self.config.fusion.calibration.yaw_bias_model,
-            float(self._calib[0]),
-            float(sig[0]),
-            float(self._calib[1]),
-            float(sig[1]),
+            tuple(float(v) for v in self._calib[:-1]),
+            tuple(float(v) for v in sig[:-1]),
+            float(self._calib[-1]),
+            float(sig[-1]),
         )
 
     def _new_registration(self) -> ScanToMapRegistration | None:
@@ -340,6 +357,18 @@ class RadarOdometry:
         if key is not None and len(self._good_calibrations) < _MAX_CALIBRATIONS:
             self._good_calibrations.add(key)
 
+    def _recalibrated(self, frame: RadarFrame) -> RadarFrame:
+        """``frame`` with the configured mounting-yaw errors added to its sweeps' calibration."""
+        if not self._mounting:
+            return frame
+        sweeps = {
+            ch: dataclasses.replace(sw, ego_from_sensor=sw.ego_from_sensor @ self._mounting[ch])
+            if ch in self._mounting
+            else sw
+            for ch, sw in frame.sweeps.items()
+        }
+        return dataclasses.replace(frame, sweeps=sweeps)
+
     # --- points -------------------------------------------------------------------------------
 
     def ego_points(self, frame: RadarFrame, fit: EgoMotionFit, twist: np.ndarray) -> np.ndarray:
@@ -380,6 +409,7 @@ class RadarOdometry:
         cfg = self.config
         # Before anything uses the frame: a NaN pose given to kiss-icp aborts the process.
         ground_truth = self.check_frame(frame)
+        frame = self._recalibrated(frame)
         fit = self.doppler.fit_frame(frame)
         t1 = time.perf_counter()
 
@@ -417,7 +447,9 @@ class RadarOdometry:
             pose_cov = np.zeros((3, 3))
             delta, delta_cov = np.eye(4), np.zeros((3, 3))
         else:
-            xi, xi_calib = self._calibrated(0.5 * (self._twist + twist) * gap_s, gap_s)
+            xi, xi_calib = self._calibrated(
+                0.5 * (self._twist + twist) * gap_s, gap_s, fit.mounting_jacobian
+            )
             delta = exp_se2(xi)
             jr = exp_jacobian_twist(xi)
             # Twist random walk (q per second) integrated over the interval: q dt^3.
@@ -497,7 +529,7 @@ class RadarOdometry:
 
         self._pose, self._cov = pose, pose_cov
         if first:
-            self._cross = np.zeros((3, 2))
+            self._cross = np.zeros((3, len(self._calib)))
         self._t_us = frame.timestamp_us
         self._twist, self._twist_cov = twist, twist_cov
         self._stopped = stopped
@@ -528,18 +560,21 @@ class RadarOdometry:
             key_frame_covariance=kf_cov,
         )
 
-    def _calibrated(self, raw: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def _calibrated(
+        self, raw: np.ndarray, dt_s: float, mounting_jacobian: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The Doppler motion ``raw`` (x, y, yaw over ``dt_s``) corrected by the estimated
-        calibration, and its (3, 2) Jacobian with respect to the calibration."""
+        calibration, and its Jacobian with respect to the calibration (3 x states)."""
         model = self.config.fusion.calibration.yaw_bias_model
-        jac = np.zeros((3, 2))
+        jac = np.zeros((3, len(self._calib)))
         if model == "none":
             return raw, jac
-        bias, scale = self._calib
-        lever = raw[0] if model == "per_metre" else dt_s
-        jac[2, 0] = -lever
-        jac[0, 1], jac[1, 1] = raw[0], raw[1]
-        return np.array([raw[0] * (1 + scale), raw[1] * (1 + scale), raw[2] - bias * lever]), jac
+        if model == "mounting":
+            jac[:, :-1] = mounting_jacobian * dt_s
+        else:
+            jac[2, 0] = -(raw[0] if model == "per_metre" else dt_s)
+        jac[0, -1], jac[1, -1] = raw[0], raw[1]
+        return raw + jac @ self._calib, jac
 
     def _fuse(
         self,
