@@ -38,7 +38,7 @@ covariance alone.
 
 Every pose is built from SE(2) exponentials (exactly orthonormal), and kiss-icp's output is
 projected back onto SE(2), so the rotation can never drift off SO(3) (kiss-icp's Sophus aborts
-the process when it does, dependencies.md pitfall 4).
+the process when it does).
 """
 
 from __future__ import annotations
