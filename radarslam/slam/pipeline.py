@@ -58,11 +58,8 @@ from __future__ import annotations
 
 import bisect
 import logging
-import os
-import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -72,6 +69,16 @@ from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert, se2_to_matrix, wrap_angle, yaw_of
 from radarslam.io.loops import LoopCandidate, NodeKey
 from radarslam.slam.config import SlamConfig
+from radarslam.slam.feed import (
+    FeedMessage,
+    FramesRead,
+    KeyFrameInput,
+    KeyFrameReady,
+    OdometryFeed,
+    SessionSpan,
+    SessionStart,
+    can_fork,
+)
 from radarslam.types import AccumulatedCloud, SceneInfo
 
 log = logging.getLogger("radarslam.slam")
@@ -113,231 +120,6 @@ class KeyFrame:
     ego_from_ref: np.ndarray
     relative: np.ndarray | None = None  # prev_ego_from_ego from the odometry
     relative_cov: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
-class _KeyFrameInput:
-    """What the key-frame side needs of a key frame's frame and odometry result."""
-
-    timestamp_us: int
-    sample_token: str
-    gt_pose: np.ndarray
-    odometry_pose: np.ndarray
-    motion: np.ndarray | None  # key-frame motion from the odometry (None: it restarted)
-    motion_cov: np.ndarray | None
-    ego_from_ref: np.ndarray
-
-
-def _key_frame_input(frame, res, buffer) -> _KeyFrameInput:
-    def copy(a):
-        return None if a is None else np.array(a, dtype=np.float64)
-
-    return _KeyFrameInput(
-        timestamp_us=int(frame.timestamp_us),
-        sample_token=frame.sample_token,
-        gt_pose=np.array(frame.world_from_ego, dtype=np.float64),
-        odometry_pose=np.array(res.world_from_ego, dtype=np.float64),
-        motion=copy(res.key_frame_motion),
-        motion_cov=copy(res.key_frame_covariance),
-        ego_from_ref=np.array(buffer.ego_from_ref(), dtype=np.float64),
-    )
-
-
-_TIMING_FIELDS = ("data_s", "odometry_s", "key_frame_s", "frames")
-
-
-@contextmanager
-def _one_torch_thread():
-    """torch's intra-op pool down to one thread while the odometry process has the other core:
-    two threads then only contend (12-scene city run: 31 s with one, 38 s with two). Yields a
-    function that gives the pool its threads back, for when the odometry process is done."""
-    torch = sys.modules.get("torch")  # never imported just for this
-    if torch is None:
-        yield lambda: None
-        return
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-
-    def restore() -> None:
-        if torch.get_num_threads() != previous:
-            torch.set_num_threads(previous)
-
-    try:
-        yield restore
-    finally:
-        restore()
-
-
-def _can_fork() -> bool:
-    import multiprocessing as mp
-
-    return "fork" in mp.get_all_start_methods()
-
-
-#: Frames per message from the reading process: one queue round trip per frame costs more than
-#: the frame's pickle.
-_FRAME_BATCH = 16
-
-
-#: Niceness added to the reading and odometry processes. On two cores the three processes share
-#: the cores, and the key-frame side (recognition, verification, iSAM2), the longest serial chain,
-#: fell behind while the other two ran, then caught up alone with one core idle for ~10 s at the
-#: end. Lower priority for the other two lets it keep up: the benchmark's run went from 14.4-14.8x
-#: to 15.1-15.8x real time in interleaved runs, identical results. With more cores than busy
-#: processes it changes nothing.
-_HELPER_NICENESS = 5
-
-
-def _lower_priority() -> None:
-    try:
-        os.nice(_HELPER_NICENESS)
-    except (AttributeError, OSError):  # no nice() here: the run is only slower
-        pass
-
-
-#: prctl(2) option: the signal a process receives when its parent dies (Linux).
-_PR_SET_PDEATHSIG = 1
-
-#: Seconds between two checks of the parent where prctl is not available.
-_PARENT_CHECK_S = 0.5
-
-
-def _die_with_parent(parent: int, pdeathsig: bool = True) -> None:
-    """End this forked process when ``parent`` dies, whatever it is doing then.
-
-    A parent killed hard (``kill -9``, the OOM killer) runs no cleanup: a helper blocked on a
-    full queue or in its queue's feeder would wait forever, reparented to init. Linux kills it
-    with SIGKILL (nothing of a helper's needs cleaning up: its queues die with the run);
-    elsewhere a thread notices the new parent id within ``_PARENT_CHECK_S``. The parent may
-    have died before this runs, hence the check after prctl."""
-    armed = False
-    if pdeathsig and sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        try:
-            libc = ctypes.CDLL(None, use_errno=True)
-            armed = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
-        except (OSError, AttributeError):  # no prctl in this libc: the thread below
-            armed = False
-    if os.getppid() != parent:
-        os._exit(1)
-    if armed:
-        return
-    import threading
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(_PARENT_CHECK_S)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
-def _helper_process_setup(parent: int) -> None:
-    """First thing the reading and odometry processes do. Ctrl-C reaches every process of the
-    terminal's process group: the helpers ignore it (a second one would otherwise print their
-    tracebacks) and the parent, which gets the KeyboardInterrupt, stops them. SIGTERM
-    (``Process.terminate``) ends them at once, even inside compiled code, instead of going
-    through a Python handler inherited from the command line."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    _die_with_parent(parent)
-    _lower_priority()
-
-
-#: Seconds between two collections of ended helper processes by the parent.
-_REAP_EVERY_S = 0.5
-
-
-def _put_error(queue, exc: BaseException, what: str) -> None:
-    try:
-        queue.put(("error", exc))
-    except Exception:  # an unpicklable error: say what it was
-        queue.put(("error", DataError(f"{what}: {type(exc).__name__}: {exc}")))
-
-
-def _reading_process(reader, infos, filters, frames, parent: int) -> None:
-    """Body of the forked reading process: every scene's frames in batches, then
-    ``("end", name)``; after the last scene ``("done", seconds spent reading)``."""
-    try:
-        _helper_process_setup(parent)
-        data_s = 0.0
-        for info in infos:
-            batch = []
-            t0 = time.perf_counter()
-            for frame in reader.iter_frames(info, filters=filters):
-                batch.append(frame)
-                if len(batch) == _FRAME_BATCH:
-                    data_s += time.perf_counter() - t0
-                    frames.put(("frames", batch))
-                    batch = []
-                    t0 = time.perf_counter()
-            data_s += time.perf_counter() - t0
-            if batch:
-                frames.put(("frames", batch))
-            frames.put(("end", info.name))
-        frames.put(("done", data_s))
-    except BaseException as exc:  # handed to the odometry process, which raises it
-        _put_error(frames, exc, "reading process")
-    finally:
-        frames.close()
-        frames.join_thread()
-
-
-class _QueuedFrames:
-    """The odometry process's frame source when a reading process reads: the frames of each
-    scene from its queue, in order; the reading time it reports becomes ``data_s``."""
-
-    def __init__(self, frames, timings: SlamTimings):
-        self._frames, self._timings = frames, timings
-
-    def __call__(self, info: SceneInfo):
-        while True:
-            message = self._frames.get()
-            kind = message[0]
-            if kind == "frames":
-                yield from message[1]
-            elif kind == "end":
-                if message[1] != info.name:  # a programming error, not a data problem
-                    raise AssertionError(f"reading process sent {message[1]}, not {info.name}")
-                return
-            elif kind == "error":
-                raise message[1]
-            else:
-                raise AssertionError(f"unexpected message {kind!r} from the reading process")
-
-    def finish(self) -> None:
-        """After the last scene: the reading time."""
-        message = self._frames.get()
-        if message[0] == "error":
-            raise message[1]
-        if message[0] != "done":
-            raise AssertionError(f"unexpected message {message[0]!r} from the reading process")
-        self._timings.data_s = message[1]
-
-
-def _odometry_process(pipeline, infos, messages, finished, parent: int, frames=None) -> None:
-    """Body of the forked odometry process: stream messages, then its timings (or its error);
-    ``finished`` (an Event) is set once the work is done and only the queue is left. ``frames``:
-    the queue of a reading process (None: read here)."""
-    try:
-        _helper_process_setup(parent)
-        source = None if frames is None else _QueuedFrames(frames, pipeline.timings)
-        for message in pipeline._odometry_messages(infos, source):
-            messages.put(message)
-        if source is not None:
-            source.finish()
-        finished.set()
-        t = pipeline.timings
-        messages.put(("done", {name: getattr(t, name) for name in _TIMING_FIELDS}))
-    except BaseException as exc:  # handed to the parent, which raises it
-        _put_error(messages, exc, "odometry process")
-    finally:
-        messages.close()
-        messages.join_thread()
 
 
 @dataclass
@@ -473,6 +255,10 @@ class SlamPipeline:
         )
         pc = cfg.odometry.points
         self._frame_filter = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+        self.timings = SlamTimings()
+        self.feed = OdometryFeed(
+            reader, cfg, self.odometry, self._frame_filter, self.timings, self._dpr_mask
+        )
         self.graph = PoseGraph(cfg.backend.pose_graph)
         self.verifier = LoopVerifier(cfg.backend.loop_verification)
         self.guided_verifier = LoopVerifier(
@@ -548,7 +334,6 @@ class SlamPipeline:
         # (query session, candidate session or None: any) -> the latest loop inside one group
         self._last_loop: dict[tuple[str, str | None], LoopCandidate] = {}
         self.loops: list[LoopCandidate] = []
-        self.timings = SlamTimings()
         self._kf_by_key: dict[NodeKey, KeyFrame] = {}
         self._duration_s = 0.0
         #: Information matrix of every loop factor added, by (candidate, query).
@@ -580,10 +365,12 @@ class SlamPipeline:
         self._ran = True  # from here on the pipeline's state changes
         bar = self._progress_bar(infos)
         try:
-            if self.config.pipelined and _can_fork():
-                self._consume_from_process(infos, bar)
+            if self.config.pipelined and can_fork():
+                self.feed.run_forked(
+                    infos, lambda m: self._handle(m, bar), meanwhile=self._load_recognizer
+                )
             else:
-                for message in self._odometry_messages(infos):
+                for message in self.feed.messages(infos):
                     self._handle(message, bar)
         finally:
             if bar is not None:
@@ -656,167 +443,18 @@ class SlamPipeline:
 
     # --- the odometry side: frames -> key-frame clouds -------------------------------------------
 
-    def _odometry_messages(self, infos: Sequence[SceneInfo], frames=None):
-        """Odometry over every frame of the scenes, as messages for :meth:`_handle`:
-        ``("session", name)``, ``("key_frame", name, _KeyFrameInput, cloud)``, ``("frames", n)``
-        and ``("span", first_us, last_us)``. Nothing here reads what the key-frame side writes
-        (odometry never depends on loops), which is what lets it run in its own process.
-        ``frames(info)`` gives a scene's frames (None: read them here)."""
-        from radarslam.slam.keyframes import SweepBuffer
-
-        own_reading = frames is None
-        if own_reading:
-
-            def frames(info):
-                return self.reader.iter_frames(info, filters=self._frame_filter)
-
-        cfg = self.config
-        use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
-        for n, info in enumerate(infos):
-            yield ("session", info.name)
-            # the session processed first may start on its ground truth; later ones start unknown
-            self.odometry.config.initial_pose = cfg.first_session_anchor if n == 0 else "identity"
-            self.odometry.reset()
-            buffer = SweepBuffer(
-                nsweeps=cfg.key_frames.nsweeps,
-                ref_channel=cfg.key_frames.ref_channel,
-                min_distance_m=cfg.key_frames.min_distance_m,
-                point_mask=self._dpr_mask() if not use_odometry_mask else None,
-            )
-            span = None
-            pending = 0  # frames not yet reported to the progress bar
-            t_data = time.perf_counter()
-            for frame in frames(info):
-                t0 = time.perf_counter()
-                if own_reading:  # else the reading process reports its own time
-                    self.timings.data_s += t0 - t_data
-                res = self.odometry.process(frame)
-                t1 = time.perf_counter()
-                self.timings.odometry_s += t1 - t0
-                self.timings.frames += 1
-                span = (frame.timestamp_us if span is None else span[0], frame.timestamp_us)
-                twist = res.doppler.twist if res.doppler.valid else np.zeros(3)
-                masks = res.doppler.static_masks if use_odometry_mask else None
-                buffer.add_frame(frame, res.world_from_ego, twist, masks)
-                pending += 1
-                if res.is_key_frame:
-                    t2 = time.perf_counter()
-                    cloud = buffer.accumulate(
-                        frame.timestamp_us, res.world_from_ego, frame.sample_token
-                    )
-                    self.timings.key_frame_s += time.perf_counter() - t2
-                    if cloud is not None:  # None before the reference radar has been seen
-                        yield ("frames", pending)
-                        pending = 0
-                        yield ("key_frame", info.name, _key_frame_input(frame, res, buffer), cloud)
-                t_data = time.perf_counter()
-            if pending:
-                yield ("frames", pending)
-            if span is not None:
-                yield ("span", span[0], span[1])
-
-    def _consume_from_process(self, infos: Sequence[SceneInfo], bar) -> None:
-        """Run :meth:`_odometry_messages` in a forked process, fed by a second one that reads
-        the radar data, and handle its messages here: on two cores the odometry and the
-        key-frame work (recognition, registration, iSAM2) overlap. Identical results to the
-        sequential run. Threads would not do: open3d's and kiss-icp's bindings hold the GIL
-        (measured: no gain). torch gets one thread until the odometry is done, then both
-        cores for the queue's backlog. The two forked processes run at a lower priority
-        (``_HELPER_NICENESS``) so that this side, the longest chain, is not left behind.
-        A fourth process for AutoPlace's CNN measured no faster on 2 cores: identical results,
-        2.5 s more work (torch and the weights loaded twice)."""
-        import multiprocessing as mp
-
-        from radarslam.io.atomic import interrupts_deferred
-
-        ctx = mp.get_context("fork")
-        # Room for about 250 key frames (~40 MB): the key-frame side's work comes in bursts
-        # (sessions linking, catch-up searches), and a short queue would stall the odometry
-        # meanwhile, leaving a core idle later.
-        messages = ctx.Queue(maxsize=512)
-        # Reading (a sixth of the odometry process's work) in a third process: the odometry is
-        # the longest chain, and the key-frame side has room to share a core with the reader.
-        frames = ctx.Queue(maxsize=64)
-        finished = ctx.Event()
-        procs = {
-            "radar reading": ctx.Process(
-                target=_reading_process,
-                args=(self.reader, infos, self._frame_filter, frames, os.getpid()),
-                name="slam-reading",
-            ),
-            "odometry": ctx.Process(
-                target=_odometry_process,
-                args=(self, infos, messages, finished, os.getpid(), frames),
-                name="slam-odometry",
-            ),
-        }
-        try:
-            for proc in procs.values():
-                proc.daemon = True
-                # Ctrl-C inside fork()'s at-fork handlers would be printed as "Exception
-                # ignored" and lost: it waits until the helper runs
-                with interrupts_deferred():
-                    proc.start()
-            self._load_recognizer()  # while the data is read and the odometry starts
-            with _one_torch_thread() as all_threads:
-                self._consume(infos, bar, procs, messages, finished, all_threads)
-            for proc in procs.values():
-                proc.join()
-        finally:
-            for proc in procs.values():
-                if proc.is_alive():
-                    proc.terminate()  # SIGTERM ends a helper at once (_helper_process_setup)
-                    proc.join(timeout=5.0)
-                if proc.is_alive():
-                    proc.kill()
-                    proc.join()
-
-    def _consume(self, infos, bar, procs, messages, finished, all_threads) -> None:
-        """Handle the odometry process's messages until its "done"."""
-        import queue as queue_mod
-
-        reap_at = time.monotonic() + _REAP_EVERY_S
-        while True:
-            if time.monotonic() >= reap_at:
-                # is_alive() collects a helper that has ended (the reader, seconds before the
-                # odometry): were this process killed meanwhile, it would be left to init.
-                for proc in procs.values():
-                    proc.is_alive()
-                reap_at = time.monotonic() + _REAP_EVERY_S
-            try:
-                message = messages.get(timeout=_REAP_EVERY_S)
-            except queue_mod.Empty:
-                for what, proc in procs.items():
-                    # the reader may be done (exit code 0) long before the odometry
-                    if not proc.is_alive() and (proc.exitcode != 0 or what == "odometry"):
-                        raise DataError(
-                            f"the {what} process ended without finishing "
-                            f"(exit code {proc.exitcode}; scenes {infos[0].name}..)"
-                        ) from None
-                continue
-            if message[0] == "error":
-                raise message[1]
-            if message[0] == "done":
-                for name, value in message[1].items():
-                    setattr(self.timings, name, value)
-                break
-            if finished.is_set():
-                all_threads()
-            self._handle(message, bar)
-
-    def _handle(self, message: tuple, bar) -> None:
-        kind = message[0]
-        if kind == "session":
-            self._start_session(message[1])
-        elif kind == "key_frame":
-            self._key_frame(*message[1:])
-        elif kind == "frames":
+    def _handle(self, message: FeedMessage, bar) -> None:
+        if isinstance(message, SessionStart):
+            self._start_session(message.name)
+        elif isinstance(message, KeyFrameReady):
+            self._key_frame(message.session, message.frame, message.cloud)
+        elif isinstance(message, FramesRead):
             if bar is not None:
-                bar.update(message[1])
-        elif kind == "span":
-            self._duration_s += (message[2] - message[1]) * 1e-6
+                bar.update(message.count)
+        elif isinstance(message, SessionSpan):
+            self._duration_s += (message.last_us - message.first_us) * 1e-6
         else:  # a programming error, not a data problem
-            raise AssertionError(f"unknown message {kind!r}")
+            raise AssertionError(f"unknown message {message!r}")
 
     # --- the key-frame side -----------------------------------------------------------------------
 
@@ -829,7 +467,7 @@ class SlamPipeline:
         self.groups[group.index] = group
         session.group = group.index
 
-    def _key_frame(self, session_name: str, inp: _KeyFrameInput, cloud) -> None:
+    def _key_frame(self, session_name: str, inp: KeyFrameInput, cloud) -> None:
         session = self.sessions[session_name]
         ego_from_ref = inp.ego_from_ref
         xy_ref = np.column_stack([cloud.points["x"], cloud.points["y"]])

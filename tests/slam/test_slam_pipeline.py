@@ -610,11 +610,11 @@ def test_a_dead_reading_or_odometry_process_is_a_clear_error(reader, scenes):
 def test_reading_and_odometry_processes_yield_to_the_key_frame_side(reader, scenes):
     import os
 
-    from radarslam.slam.pipeline import _HELPER_NICENESS
+    from radarslam.slam.feed import HELPER_NICENESS
 
     # each process reports its niceness in an error, the one thing that comes back from it
     ours = os.nice(0)
-    expected = min(ours + _HELPER_NICENESS, 19)
+    expected = min(ours + HELPER_NICENESS, 19)
     cfg = SlamConfig(pipelined=True)
     cfg.loops.enabled = False
 
@@ -877,12 +877,12 @@ def test_only_proximity_registrations_drop_single_clutter_returns(reader, min_ne
 
 def test_torch_runs_on_one_thread_until_the_odometry_process_is_done():
     torch = pytest.importorskip("torch")
-    from radarslam.slam.pipeline import _one_torch_thread
+    from radarslam.slam.feed import one_torch_thread
 
     previous = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        with _one_torch_thread() as all_threads:
+        with one_torch_thread() as all_threads:
             assert torch.get_num_threads() == 1
             all_threads()  # the odometry process is done: the backlog gets both cores
             assert torch.get_num_threads() == 2

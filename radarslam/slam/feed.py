@@ -1,0 +1,496 @@
+"""The front-end feed: radar frames -> odometry -> key-frame clouds, as typed messages.
+
+:class:`OdometryFeed` runs the odometry over every frame of the scenes and yields what the
+key-frame side needs: :class:`SessionStart`, :class:`KeyFrameReady`, :class:`FramesRead` and
+:class:`SessionSpan`. Nothing it reads is written by the key-frame side (odometry never depends
+on loops), so with :meth:`OdometryFeed.run_forked` it runs in a forked process fed by a second
+one that reads the radar data, and the messages cross a queue: on two cores the odometry and the
+key-frame work (recognition, registration, iSAM2) overlap, with identical results.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from radarslam.errors import DataError
+from radarslam.types import AccumulatedCloud, SceneInfo
+
+# --- messages ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class KeyFrameInput:
+    """What the key-frame side needs of a key frame's frame and odometry result."""
+
+    timestamp_us: int
+    sample_token: str
+    gt_pose: np.ndarray
+    odometry_pose: np.ndarray
+    motion: np.ndarray | None  # key-frame motion from the odometry (None: it restarted)
+    motion_cov: np.ndarray | None
+    ego_from_ref: np.ndarray
+
+
+def key_frame_input(frame, res, buffer) -> KeyFrameInput:
+    def copy(a):
+        return None if a is None else np.array(a, dtype=np.float64)
+
+    return KeyFrameInput(
+        timestamp_us=int(frame.timestamp_us),
+        sample_token=frame.sample_token,
+        gt_pose=np.array(frame.world_from_ego, dtype=np.float64),
+        odometry_pose=np.array(res.world_from_ego, dtype=np.float64),
+        motion=copy(res.key_frame_motion),
+        motion_cov=copy(res.key_frame_covariance),
+        ego_from_ref=np.array(buffer.ego_from_ref(), dtype=np.float64),
+    )
+
+
+@dataclass(frozen=True)
+class SessionStart:
+    """The frames that follow belong to the scene ``name``, a new session."""
+
+    name: str
+
+
+@dataclass(frozen=True)
+class KeyFrameReady:
+    """A key frame of ``session``: its odometry and its accumulated cloud."""
+
+    session: str
+    frame: KeyFrameInput
+    cloud: AccumulatedCloud
+
+
+@dataclass(frozen=True)
+class FramesRead:
+    """``count`` more frames went through the odometry (for the progress bar)."""
+
+    count: int
+
+
+@dataclass(frozen=True)
+class SessionSpan:
+    """Sensor time covered by the session just ended."""
+
+    first_us: int
+    last_us: int
+
+
+#: What the key-frame side receives.
+FeedMessage = SessionStart | KeyFrameReady | FramesRead | SessionSpan
+
+
+@dataclass(frozen=True)
+class FrameBatch:
+    """Reading process -> odometry process: the next frames of the current scene."""
+
+    frames: list
+
+
+@dataclass(frozen=True)
+class SceneEnd:
+    """Reading process -> odometry process: the scene ``name`` has no more frames."""
+
+    name: str
+
+
+@dataclass(frozen=True)
+class ReadingDone:
+    """Reading process -> odometry process: every scene read, in ``data_s`` seconds."""
+
+    data_s: float
+
+
+@dataclass(frozen=True)
+class OdometryDone:
+    """Odometry process -> key-frame side: the odometry's timings (:data:`TIMING_FIELDS`)."""
+
+    timings: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Failed:
+    """A helper process's error, raised again by the process that receives it."""
+
+    error: BaseException
+
+
+#: The timings the odometry side measures (the rest are the key-frame side's).
+TIMING_FIELDS = ("data_s", "odometry_s", "key_frame_s", "frames")
+
+
+# --- the odometry side ---------------------------------------------------------------------------
+
+
+class OdometryFeed:
+    """Odometry over every frame of the scenes, as :data:`FeedMessage` s.
+
+    ``odometry`` is reset for every scene; the session processed first may start on its ground
+    truth (``config.first_session_anchor``), later ones start unknown. ``point_mask`` makes the
+    key-frame clouds' dynamic-point mask (called per scene, only when
+    ``key_frames.dynamic_points`` is not ``odometry``). The odometry's timings go to ``timings``.
+    """
+
+    def __init__(self, reader, config, odometry, frame_filter, timings, point_mask: Callable):
+        self.reader = reader
+        self.config = config
+        self.odometry = odometry
+        self.frame_filter = frame_filter
+        self.timings = timings
+        self.point_mask = point_mask
+
+    def messages(
+        self, infos: Sequence[SceneInfo], frames: Callable | None = None
+    ) -> Iterator[FeedMessage]:
+        """The messages of every scene in order. ``frames(info)`` gives a scene's frames (None:
+        read them here)."""
+        from radarslam.slam.keyframes import SweepBuffer
+
+        own_reading = frames is None
+        if own_reading:
+
+            def frames(info):
+                return self.reader.iter_frames(info, filters=self.frame_filter)
+
+        cfg = self.config
+        timings = self.timings
+        use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
+        for n, info in enumerate(infos):
+            yield SessionStart(info.name)
+            self.odometry.config.initial_pose = cfg.first_session_anchor if n == 0 else "identity"
+            self.odometry.reset()
+            buffer = SweepBuffer(
+                nsweeps=cfg.key_frames.nsweeps,
+                ref_channel=cfg.key_frames.ref_channel,
+                min_distance_m=cfg.key_frames.min_distance_m,
+                point_mask=self.point_mask() if not use_odometry_mask else None,
+            )
+            span = None
+            pending = 0  # frames not yet reported to the progress bar
+            t_data = time.perf_counter()
+            for frame in frames(info):
+                t0 = time.perf_counter()
+                if own_reading:  # else the reading process reports its own time
+                    timings.data_s += t0 - t_data
+                res = self.odometry.process(frame)
+                t1 = time.perf_counter()
+                timings.odometry_s += t1 - t0
+                timings.frames += 1
+                span = (frame.timestamp_us if span is None else span[0], frame.timestamp_us)
+                twist = res.doppler.twist if res.doppler.valid else np.zeros(3)
+                masks = res.doppler.static_masks if use_odometry_mask else None
+                buffer.add_frame(frame, res.world_from_ego, twist, masks)
+                pending += 1
+                if res.is_key_frame:
+                    t2 = time.perf_counter()
+                    cloud = buffer.accumulate(
+                        frame.timestamp_us, res.world_from_ego, frame.sample_token
+                    )
+                    timings.key_frame_s += time.perf_counter() - t2
+                    if cloud is not None:  # None before the reference radar has been seen
+                        yield FramesRead(pending)
+                        pending = 0
+                        yield KeyFrameReady(info.name, key_frame_input(frame, res, buffer), cloud)
+                t_data = time.perf_counter()
+            if pending:
+                yield FramesRead(pending)
+            if span is not None:
+                yield SessionSpan(span[0], span[1])
+
+    def run_forked(
+        self,
+        infos: Sequence[SceneInfo],
+        handle: Callable[[FeedMessage], None],
+        meanwhile: Callable[[], None] = lambda: None,
+    ) -> None:
+        """:meth:`messages` in a forked process, fed by a second one that reads the radar data;
+        each message is given to ``handle`` here, in order. ``meanwhile`` runs here once the
+        helpers have started (the recognizer's loading). Threads would not do: open3d's and
+        kiss-icp's bindings hold the GIL (measured: no gain). torch gets one thread until the
+        odometry is done, then both cores for the queue's backlog. The two forked processes run
+        at a lower priority (:data:`HELPER_NICENESS`) so that this side, the longest chain, is
+        not left behind. A fourth process for AutoPlace's CNN measured no faster on 2 cores:
+        identical results, 2.5 s more work (torch and the weights loaded twice)."""
+        import multiprocessing as mp
+
+        from radarslam.io.atomic import interrupts_deferred
+
+        ctx = mp.get_context("fork")
+        # Room for about 250 key frames (~40 MB): the key-frame side's work comes in bursts
+        # (sessions linking, catch-up searches), and a short queue would stall the odometry
+        # meanwhile, leaving a core idle later.
+        messages = ctx.Queue(maxsize=512)
+        # Reading (a sixth of the odometry process's work) in a third process: the odometry is
+        # the longest chain, and the key-frame side has room to share a core with the reader.
+        frames = ctx.Queue(maxsize=64)
+        finished = ctx.Event()
+        procs = {
+            "radar reading": ctx.Process(
+                target=_reading_process,
+                args=(self.reader, infos, self.frame_filter, frames, os.getpid()),
+                name="slam-reading",
+            ),
+            "odometry": ctx.Process(
+                target=_odometry_process,
+                args=(self, infos, messages, finished, os.getpid(), frames),
+                name="slam-odometry",
+            ),
+        }
+        try:
+            for proc in procs.values():
+                proc.daemon = True
+                # Ctrl-C inside fork()'s at-fork handlers would be printed as "Exception
+                # ignored" and lost: it waits until the helper runs
+                with interrupts_deferred():
+                    proc.start()
+            meanwhile()
+            with one_torch_thread() as all_threads:
+                self._consume(infos, handle, procs, messages, finished, all_threads)
+            for proc in procs.values():
+                proc.join()
+        finally:
+            for proc in procs.values():
+                if proc.is_alive():
+                    proc.terminate()  # SIGTERM ends a helper at once (helper_process_setup)
+                    proc.join(timeout=5.0)
+                if proc.is_alive():
+                    proc.kill()
+                    proc.join()
+
+    def _consume(self, infos, handle, procs, messages, finished, all_threads) -> None:
+        """Hand the odometry process's messages to ``handle`` until :class:`OdometryDone`."""
+        import queue as queue_mod
+
+        reap_at = time.monotonic() + _REAP_EVERY_S
+        while True:
+            if time.monotonic() >= reap_at:
+                # is_alive() collects a helper that has ended (the reader, seconds before the
+                # odometry): were this process killed meanwhile, it would be left to init.
+                for proc in procs.values():
+                    proc.is_alive()
+                reap_at = time.monotonic() + _REAP_EVERY_S
+            try:
+                message = messages.get(timeout=_REAP_EVERY_S)
+            except queue_mod.Empty:
+                for what, proc in procs.items():
+                    # the reader may be done (exit code 0) long before the odometry
+                    if not proc.is_alive() and (proc.exitcode != 0 or what == "odometry"):
+                        raise DataError(
+                            f"the {what} process ended without finishing "
+                            f"(exit code {proc.exitcode}; scenes {infos[0].name}..)"
+                        ) from None
+                continue
+            if isinstance(message, Failed):
+                raise message.error
+            if isinstance(message, OdometryDone):
+                for name, value in message.timings.items():
+                    setattr(self.timings, name, value)
+                break
+            if finished.is_set():
+                all_threads()
+            handle(message)
+
+
+# --- the helper processes ------------------------------------------------------------------------
+
+
+@contextmanager
+def one_torch_thread():
+    """torch's intra-op pool down to one thread while the odometry process has the other core:
+    two threads then only contend (12-scene city run: 31 s with one, 38 s with two). Yields a
+    function that gives the pool its threads back, for when the odometry process is done."""
+    torch = sys.modules.get("torch")  # never imported just for this
+    if torch is None:
+        yield lambda: None
+        return
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+
+    def restore() -> None:
+        if torch.get_num_threads() != previous:
+            torch.set_num_threads(previous)
+
+    try:
+        yield restore
+    finally:
+        restore()
+
+
+def can_fork() -> bool:
+    import multiprocessing as mp
+
+    return "fork" in mp.get_all_start_methods()
+
+
+#: Frames per message from the reading process: one queue round trip per frame costs more than
+#: the frame's pickle.
+_FRAME_BATCH = 16
+
+
+#: Niceness added to the reading and odometry processes. On two cores the three processes share
+#: the cores, and the key-frame side (recognition, verification, iSAM2), the longest serial chain,
+#: fell behind while the other two ran, then caught up alone with one core idle for ~10 s at the
+#: end. Lower priority for the other two lets it keep up: the benchmark's run went from 14.4-14.8x
+#: to 15.1-15.8x real time in interleaved runs, identical results. With more cores than busy
+#: processes it changes nothing.
+HELPER_NICENESS = 5
+
+
+def _lower_priority() -> None:
+    try:
+        os.nice(HELPER_NICENESS)
+    except (AttributeError, OSError):  # no nice() here: the run is only slower
+        pass
+
+
+#: prctl(2) option: the signal a process receives when its parent dies (Linux).
+_PR_SET_PDEATHSIG = 1
+
+#: Seconds between two checks of the parent where prctl is not available.
+PARENT_CHECK_S = 0.5
+
+
+def die_with_parent(parent: int, pdeathsig: bool = True) -> None:
+    """End this forked process when ``parent`` dies, whatever it is doing then.
+
+    A parent killed hard (``kill -9``, the OOM killer) runs no cleanup: a helper blocked on a
+    full queue or in its queue's feeder would wait forever, reparented to init. Linux kills it
+    with SIGKILL (nothing of a helper's needs cleaning up: its queues die with the run);
+    elsewhere a thread notices the new parent id within :data:`PARENT_CHECK_S`. The parent may
+    have died before this runs, hence the check after prctl."""
+    armed = False
+    if pdeathsig and sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+        except (OSError, AttributeError):  # no prctl in this libc: the thread below
+            armed = False
+    if os.getppid() != parent:
+        os._exit(1)
+    if armed:
+        return
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def helper_process_setup(parent: int) -> None:
+    """First thing the reading and odometry processes do. Ctrl-C reaches every process of the
+    terminal's process group: the helpers ignore it (a second one would otherwise print their
+    tracebacks) and the parent, which gets the KeyboardInterrupt, stops them. SIGTERM
+    (``Process.terminate``) ends them at once, even inside compiled code, instead of going
+    through a Python handler inherited from the command line."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    die_with_parent(parent)
+    _lower_priority()
+
+
+#: Seconds between two collections of ended helper processes by the parent.
+_REAP_EVERY_S = 0.5
+
+
+def _put_error(queue, exc: BaseException, what: str) -> None:
+    try:
+        queue.put(Failed(exc))
+    except Exception:  # an unpicklable error: say what it was
+        queue.put(Failed(DataError(f"{what}: {type(exc).__name__}: {exc}")))
+
+
+def _reading_process(reader, infos, filters, frames, parent: int) -> None:
+    """Body of the forked reading process: every scene's frames in :class:`FrameBatch` es, then
+    :class:`SceneEnd`; after the last scene :class:`ReadingDone`."""
+    try:
+        helper_process_setup(parent)
+        data_s = 0.0
+        for info in infos:
+            batch = []
+            t0 = time.perf_counter()
+            for frame in reader.iter_frames(info, filters=filters):
+                batch.append(frame)
+                if len(batch) == _FRAME_BATCH:
+                    data_s += time.perf_counter() - t0
+                    frames.put(FrameBatch(batch))
+                    batch = []
+                    t0 = time.perf_counter()
+            data_s += time.perf_counter() - t0
+            if batch:
+                frames.put(FrameBatch(batch))
+            frames.put(SceneEnd(info.name))
+        frames.put(ReadingDone(data_s))
+    except BaseException as exc:  # handed to the odometry process, which raises it
+        _put_error(frames, exc, "reading process")
+    finally:
+        frames.close()
+        frames.join_thread()
+
+
+class _QueuedFrames:
+    """The odometry process's frame source when a reading process reads: the frames of each
+    scene from its queue, in order; the reading time it reports becomes ``data_s``."""
+
+    def __init__(self, frames, timings):
+        self._frames, self._timings = frames, timings
+
+    def __call__(self, info: SceneInfo):
+        while True:
+            message = self._frames.get()
+            if isinstance(message, FrameBatch):
+                yield from message.frames
+            elif isinstance(message, SceneEnd):
+                if message.name != info.name:  # a programming error, not a data problem
+                    raise AssertionError(f"reading process sent {message.name}, not {info.name}")
+                return
+            elif isinstance(message, Failed):
+                raise message.error
+            else:
+                raise AssertionError(f"unexpected message {message!r} from the reading process")
+
+    def finish(self) -> None:
+        """After the last scene: the reading time."""
+        message = self._frames.get()
+        if isinstance(message, Failed):
+            raise message.error
+        if not isinstance(message, ReadingDone):
+            raise AssertionError(f"unexpected message {message!r} from the reading process")
+        self._timings.data_s = message.data_s
+
+
+def _odometry_process(feed, infos, messages, finished, parent: int, frames=None) -> None:
+    """Body of the forked odometry process: stream messages, then :class:`OdometryDone` (or
+    :class:`Failed`); ``finished`` (an Event) is set once the work is done and only the queue is
+    left. ``frames``: the queue of a reading process (None: read here)."""
+    try:
+        helper_process_setup(parent)
+        source = None if frames is None else _QueuedFrames(frames, feed.timings)
+        for message in feed.messages(infos, source):
+            messages.put(message)
+        if source is not None:
+            source.finish()
+        finished.set()
+        t = feed.timings
+        messages.put(OdometryDone({name: getattr(t, name) for name in TIMING_FIELDS}))
+    except BaseException as exc:  # handed to the parent, which raises it
+        _put_error(messages, exc, "odometry process")
+    finally:
+        messages.close()
+        messages.join_thread()
