@@ -15,7 +15,7 @@ from radarslam.errors import RadarSlamError
 try:  # typer >= 0.2x ships its own copy of click
     from typer._click import exceptions as _click_exceptions
 except ImportError:  # pragma: no cover
-    from click import exceptions as _click_exceptions
+    from click import exceptions as _click_exceptions  # type: ignore[no-redef]
 
 app = typer.Typer(
     name="radarslam",

@@ -81,13 +81,13 @@ def _format_validation_error(
             part = f"unknown key '{loc}'"
         else:
             part = f"'{loc}': {err['msg']}{_got(err.get('input'))}"
-        text, section = _override_for(tuple(err["loc"]), parsed)
-        if text is None:
+        setter, section = _override_for(tuple(err["loc"]), parsed)
+        if setter is None:
             where = source
         elif section and source != "config overrides":
-            where = f"{source} with override {text!r}"
+            where = f"{source} with override {setter!r}"
         else:
-            where = f"override {text!r}"
+            where = f"override {setter!r}"
         groups.setdefault(where, []).append(part)
     return "; ".join(f"{where}: " + "; ".join(parts) for where, parts in groups.items())
 

@@ -76,7 +76,7 @@ class EvalReport:
     results_dir: Path
     sessions: list[str]
     per_session: dict[str, dict[str, TrajectoryMetrics]]  # session -> kind -> metrics
-    run: dict[str, dict[str, float]]  # kind -> pooled numbers
+    run: dict[str, dict[str, float | None]]  # kind -> pooled numbers (None: nothing to pool)
     loops: LoopMetrics | None
     config: EvalConfig
     errors_over_time: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
@@ -323,7 +323,7 @@ def evaluate_results(
             pooled[kind]["est"].append(e)
             pooled[kind]["ref"].append(r)
             pooled[kind].setdefault("session", []).append(s)
-    run: dict[str, dict[str, float]] = {}
+    run: dict[str, dict[str, float | None]] = {}
     for kind in KINDS:
         p = pooled[kind]
         if not p["ate"]:
@@ -417,7 +417,7 @@ def write_plots(folder: ResultsFolder, report: EvalReport) -> None:
         tr = folder.trajectories[s].get(kind)
         return None if tr is None else tr[1][:, :2, 3]
 
-    lookup = {}
+    lookup: dict[str, dict[int, np.ndarray]] = {}
     for s in folder.sessions:
         for kind in ("slam", "odometry"):
             tr = folder.trajectories[s].get(kind)

@@ -167,17 +167,17 @@ def interrupts_deferred() -> Iterator[None]:
     def hold(signum, frame) -> None:
         held.append(signum)
 
-    previous = {}
+    previous: dict[int, Any] = {}
     try:
         for sig in (signal.SIGINT, signal.SIGTERM):
             if signal.getsignal(sig) is not None:
                 previous[sig] = signal.signal(sig, hold)
         yield
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        for sig in dict.fromkeys(held):
-            signal.raise_signal(sig)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in dict.fromkeys(held):
+            signal.raise_signal(signum)
 
 
 #: Renames (temporary file, target) waiting for the end of the innermost :func:`atomic_batch`.
@@ -272,7 +272,7 @@ def atomic_open(path: str | Path, mode: str = "w", encoding: str | None = "utf-8
                 prefix=_temp_prefix(path.name), suffix=".tmp", dir=path.parent
             )
     except BaseException as exc:
-        if tmp is not None:
+        if fd is not None and tmp is not None:
             os.close(fd)
             os.unlink(tmp)
         if isinstance(exc, OSError):

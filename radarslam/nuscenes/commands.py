@@ -84,7 +84,7 @@ def stats(
             ref_reader.scene(name)
     st = dataset_statistics(reader, names, max_sweeps, desc=f"stats {dataroot.name}")
     ref = None
-    if ref_reader is not None:
+    if ref_reader is not None and reference is not None:
         ref = dataset_statistics(ref_reader, ref_names, max_sweeps, desc=f"stats {reference.name}")
     table = comparison(st.to_dict(), None if ref is None else ref.to_dict())
     typer.echo(comparison_markdown(table, st, ref))

@@ -31,7 +31,7 @@ def _states(name: str, values: Iterable[int] | None) -> frozenset[int] | None:
     return frozenset(out)
 
 
-_OFFSET = {name: RADAR_DTYPE.fields[name][1] for name in RADAR_DTYPE.names}
+_OFFSET = {name: field[1] for name, field in (RADAR_DTYPE.fields or {}).items()}
 
 
 def _bytes_view(points: np.ndarray) -> np.ndarray | None:
@@ -60,7 +60,11 @@ class RadarPointFilter:
     @classmethod
     def devkit_default(cls) -> RadarPointFilter:
         """The devkit defaults: invalid_state 0, dyn_prop 0..6 (drops 7 stopped), ambig_state 3."""
-        return cls(invalid_states={0}, dynprop_states=range(7), ambig_states={3})
+        return cls(
+            invalid_states=frozenset({0}),
+            dynprop_states=frozenset(range(7)),
+            ambig_states=frozenset({3}),
+        )
 
     @classmethod
     def none(cls) -> RadarPointFilter:

@@ -23,7 +23,7 @@ _MAX_HEADER_LINES = 64
 _DTYPE_CACHE: dict[tuple, np.dtype] = {}
 
 
-def _header_dtype(path: Path, header: dict[str, list[str]]) -> np.dtype:
+def _header_dtype(path: str | Path, header: dict[str, list[str]]) -> np.dtype:
     fields = header["FIELDS"]
     sizes, types = header["SIZE"], header["TYPE"]
     counts = header.get("COUNT", ["1"] * len(fields))
@@ -34,7 +34,7 @@ def _header_dtype(path: Path, header: dict[str, list[str]]) -> np.dtype:
     return dtype
 
 
-def _build_dtype(path: Path, fields, sizes, types, counts) -> np.dtype:
+def _build_dtype(path: str | Path, fields, sizes, types, counts) -> np.dtype:
     if not (len(fields) == len(sizes) == len(types) == len(counts)):
         raise DataError(f"{path}: header FIELDS/SIZE/TYPE/COUNT have different lengths")
     dup = sorted({f for f in fields if fields.count(f) > 1})

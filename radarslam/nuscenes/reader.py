@@ -223,7 +223,7 @@ class NuScenesRadar:
         if isinstance(name, SceneInfo):
             row = self.tables.small.scene_row.get(name.name)
             own = None if row is None else self.scenes()[row]
-            if own is None or own.token != name.token:
+            if row is None or own is None or own.token != name.token:
                 mine = f"its {name.name!r} has token {own.token!r}" if own else "no such name"
                 raise DataError(
                     f"scene {name.name!r} (token {name.token!r}) is not a scene of "
@@ -530,11 +530,11 @@ class NuScenesRadar:
             if len(free) == 0 or len(a_time) == 0:
                 continue
             pairs = []
-            for i in free:
-                lo = np.searchsorted(a_time, t[i] - tol, "left")
-                hi = np.searchsorted(a_time, t[i] + tol, "right")
+            for k in free:
+                lo = np.searchsorted(a_time, t[k] - tol, "left")
+                hi = np.searchsorted(a_time, t[k] + tol, "right")
                 for a in range(lo, hi):
-                    pairs.append((abs(int(a_time[a] - t[i])), a, int(i)))
+                    pairs.append((abs(int(a_time[a] - t[k])), a, int(k)))
             pairs.sort()
             used = set()
             for _, a, i in pairs:

@@ -284,7 +284,8 @@ def redetection(
         tot = np.zeros(4, dtype=np.int64)
         for sc in scenes:
             tot += np.array(_redetect_chain(sc.sweeps.get(ch, []), radius_m, lookahead))
-        per[ch] = tuple(int(x) for x in tot)
+        h1, n1, hk, nk = (int(x) for x in tot)
+        per[ch] = (h1, n1, hk, nk)
 
     def frac(h: int, n: int) -> float:
         return h / n if n else float("nan")

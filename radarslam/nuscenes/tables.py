@@ -30,6 +30,7 @@ import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -652,7 +653,8 @@ class NuScenesTables:
 
         try:
             with atomic_open(cache_file, "wb") as fh:
-                np.savez(fh, key=np.array(key), **index.arrays())
+                arrays: dict[str, Any] = {"key": np.array(key), **index.arrays()}
+                np.savez(fh, **arrays)
         except OSError as exc:  # a read-only home must not stop the reader
             log.warning("could not write the radar index cache %s (%s)", cache_file, exc)
 
@@ -756,17 +758,17 @@ class NuScenesTables:
                 continue
             pieces = []
             pos = 0
-            for i in hits:  # in file order: each search starts where the previous one ended
-                at = body.find(b'"' + toks[i] + b'"', pos)
+            for h in hits:  # in file order: each search starts where the previous one ended
+                at = body.find(b'"' + toks[h] + b'"', pos)
                 start = body.rfind(b"{", 0, at)
                 pos = body.find(b"}", at) + 1
                 pieces.append((body[start:pos], base + start))
             recs = _loads_many(p_ego, pieces)
-            r = rows[hits]
+            dest = rows[hits]
             bools = b"true" in body or b"false" in body  # C search; never in real ego poses
-            u_t[r] = _number_block(p_ego, recs, "translation", 3, bools)
-            u_q[r] = _number_block(p_ego, recs, "rotation", 4, bools)
-            found[r] = True
+            u_t[dest] = _number_block(p_ego, recs, "translation", 3, bools)
+            u_q[dest] = _number_block(p_ego, recs, "rotation", 4, bools)
+            found[dest] = True
         if not found.all():
             missing = uniq[~found][0].decode()
             raise DataError(

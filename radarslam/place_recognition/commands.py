@@ -127,6 +127,7 @@ def eval_cmd(
     if checkpoint is not None:
         name, fn = checkpoint_ranking_fn(data, checkpoint, cfg)
     else:
+        assert baseline is not None  # exactly one of the two was checked above
         name, fn = baseline_ranking_fn(data, baseline, cfg)
     results = evaluate_method(
         data, name, fn, cfg, split, rerank_cfg=cfg.rerank if rerank else None, tune_on_val=tune
@@ -167,7 +168,11 @@ def build_db_cmd(
     cfg = load_config(PlaceRecognizerConfig, config, overrides)
     rec = PlaceRecognizer(checkpoint=checkpoint, config=cfg)
     reader = NuScenesRadar(dataroot, version)
-    scenes = list(scene or []) or [s.name for s in reader.scenes_for_location(location)]
+    if scene:
+        scenes = list(scene)
+    else:
+        assert location is not None  # one of the two was checked above
+        scenes = [s.name for s in reader.scenes_for_location(location)]
     for name in tqdm(scenes, desc="build-db", unit="scene"):
         for token, clouds in iter_scene_sequences(rec, reader, name):
             rec.add(clouds, key=token)

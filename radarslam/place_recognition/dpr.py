@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -84,7 +85,7 @@ def dpr_mask(
     n = len(radial_velocity_mps)
     if n == 0:
         return np.zeros(0, bool), False, True
-    common = dict(
+    common: dict[str, Any] = dict(
         inlier_threshold_mps=cfg.inlier_threshold_mps,
         relative_threshold=cfg.relative_threshold,
         static_speed_mps=cfg.static_speed_mps,

@@ -170,9 +170,9 @@ def tune_rcshr(
         r5 = float(np.logical_or.accumulate(correct, axis=1)[:, -1].mean())
         trials.append({"bin_min": cfg.bin_min, "bin_width": cfg.bin_width, "alpha": cfg.alpha,
                        "R@1": r1, "R@5": r5})  # fmt: skip
-        key = (r1, r5)
-        if best_key is None or key > best_key:
-            best, best_key = cfg, key
+        score = (r1, r5)
+        if best_key is None or score > best_key:
+            best, best_key = cfg, score
     assert best is not None and best_key is not None
     return TuneResult(best=best, best_recall_at_1=best_key[0], baseline_recall_at_1=float(base),
                       trials=trials)  # fmt: skip

@@ -657,7 +657,7 @@ def _points_fingerprint(points) -> tuple | None:
     for name in _IMAGE_FIELDS:
         col = np.ascontiguousarray(points[name])
         h.update(col.dtype.str.encode())
-        h.update(col)
+        h.update(col.data)
     return (len(points), h.digest())
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numbers
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +52,7 @@ class DescriptorIndex:
         self.cfg = cfg or RetrievalConfig()
         self._chunks: list[np.ndarray] = []
         self._matrix: np.ndarray | None = None  # concatenation of _chunks, built on demand
-        self._faiss = None
+        self._faiss: Any = None  # a faiss.IndexFlatL2, built on demand
 
     @classmethod
     def from_descriptors(

@@ -246,7 +246,7 @@ def _preselect(world: StaticWorld, lo, hi, extra_sc: Scatterers, extra_occ: np.n
     return sc.subset(m), segs(occ), segs(world.reflectors)
 
 
-def _sensor_states(ego: EgoMotion, mounts_xy: np.ndarray, mount_yaw: float):
+def _sensor_states(ego: EgoMotion, mounts_xy: tuple[float, float], mount_yaw: float):
     """World pose and sensor-frame velocity over ground of one radar for each ego state."""
     c, s = np.cos(ego.yaw), np.sin(ego.yaw)
     mx, my = mounts_xy
@@ -347,8 +347,8 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
     for m in mounts:
         period = cfg.radar.period_s + rng.normal(0, cfg.radar.period_spread_s)
         phase = rng.uniform(0, period)
-        k = np.arange(int(t_end / period) + 2)
-        t = phase + k * period + rng.normal(0, cfg.radar.jitter_s, len(k))
+        ticks = np.arange(int(t_end / period) + 2)
+        t = phase + ticks * period + rng.normal(0, cfg.radar.jitter_s, len(ticks))
         clocks[m.channel] = np.sort(t)
 
     records: dict[str, list[dict]] = {n: [] for n in ("scene", "sample", "sample_data", "ego_pose")}
@@ -362,7 +362,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 tok, make_token(seed, "sensor", m.channel), ego_from_sensor[m.channel]
             )
         )
-    side = {
+    side: dict[str, list] = {
         "token": [],
         "timestamp_us": [],
         "channel": [],
@@ -436,9 +436,9 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                     key_of[nearest] = i
             # As in nuScenes, a radar's chain in a scene starts with its first key frame.
             if key_of:
-                first = min(key_of)
-                t_sw = t_sw[first:]
-                key_of = {k - first: i for k, i in key_of.items()}
+                start = min(key_of)
+                t_sw = t_sw[start:]
+                key_of = {k - start: i for k, i in key_of.items()}
             ego = ego_fn(t_sw)
             sxy, syaw, v_s = _sensor_states(ego, (m.x_m, m.y_m), np.deg2rad(m.yaw_deg))
             sd_tok = [

@@ -129,8 +129,13 @@ def build_path(
         line_len = max(seg_len[i] - t_in[i] - t_out[i], 0.0)
         key = seq[i] * n_nodes + seq[i + 1]
         along_start = float(np.dot(p0 - la[i], d[i]))
-        s0.append(s), lens.append(line_len), xy0.append(p0), th0.append(th[i])
-        kap.append(0.0), ekey.append(key), al0.append(along_start)
+        s0.append(s)
+        lens.append(line_len)
+        xy0.append(p0)
+        th0.append(th[i])
+        kap.append(0.0)
+        ekey.append(key)
+        al0.append(along_start)
         if i < k - 1 and net.has_light[seq[i + 1]]:
             dist_to_node = float(np.dot(b[i] - p0, d[i]))
             s_stop = s + min(max(dist_to_node - stop_back_m, 0.0), line_len)
@@ -144,8 +149,13 @@ def build_path(
             heading = float(th[i])
             along = -float(tang[i]) - float(np.dot(la[i + 1] - corner[i], d[i + 1]))
             for ln, kap_ in turns[i]:
-                s0.append(s), lens.append(ln), xy0.append(xy.copy()), th0.append(heading)
-                kap.append(kap_), ekey.append(next_key), al0.append(along)
+                s0.append(s)
+                lens.append(ln)
+                xy0.append(xy.copy())
+                th0.append(heading)
+                kap.append(kap_)
+                ekey.append(next_key)
+                al0.append(along)
                 xy = xy + np.array(
                     [
                         (np.sin(heading + kap_ * ln) - np.sin(heading)) / kap_,

@@ -233,17 +233,18 @@ def build_network(cfg: CityConfig, rng: np.random.Generator, light_cycle=(45.0, 
     def nid(i, j):
         return i * (ny + 1) + j
 
-    edges, boundary = [], []
+    edge_list: list[tuple[int, int]] = []
+    on_boundary: list[bool] = []
     for i in range(nx + 1):
         for j in range(ny + 1):
             if i < nx:
-                edges.append((nid(i, j), nid(i + 1, j)))
-                boundary.append(j in (0, ny))
+                edge_list.append((nid(i, j), nid(i + 1, j)))
+                on_boundary.append(j in (0, ny))
             if j < ny:
-                edges.append((nid(i, j), nid(i, j + 1)))
-                boundary.append(i in (0, nx))
-    edges = np.array(edges)
-    boundary = np.array(boundary)
+                edge_list.append((nid(i, j), nid(i, j + 1)))
+                on_boundary.append(i in (0, nx))
+    edges = np.array(edge_list)
+    boundary = np.array(on_boundary)
     keep = np.ones(len(edges), bool)
     n_nodes = len(nodes)
     degree = np.bincount(edges.ravel(), minlength=n_nodes)
@@ -381,13 +382,13 @@ class _CityBuilder:
             d = _unit(b - a)
             inward = _left(d)  # ccw polygon: the interior is on the left
             lines.append((a + inward * off, d, inward))
-        inset = []
+        corners_in = []
         for k in range(m):
             p, d, _ = lines[k - 1]
             q, e, _ = lines[k]
             x = _line_intersection(p, d, q, e)
-            inset.append(x if x is not None else q)
-        inset = np.array(inset)
+            corners_in.append(x if x is not None else q)
+        inset = np.array(corners_in)
         for k in range(m):
             a, b = inset[k], inset[(k + 1) % m]
             outward = -lines[k][2]
