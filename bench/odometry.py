@@ -150,7 +150,9 @@ def _label(scenes: list[str]) -> str:
 
 
 def _yaw(poses: np.ndarray) -> np.ndarray:
-    return np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    from radarslam.geometry import yaws_of
+
+    return np.unwrap(yaws_of(poses))
 
 
 def segment_metrics(r: dict, method: str) -> dict:

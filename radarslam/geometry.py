@@ -115,11 +115,26 @@ def se2_to_matrix(x: float, y: float, yaw: float) -> np.ndarray:
 
 def matrix_to_se2(pose: np.ndarray) -> np.ndarray:
     """(x, y, yaw) of a 4x4 pose projected on the ground plane."""
-    return np.array([pose[0, 3], pose[1, 3], np.arctan2(pose[1, 0], pose[0, 0])])
+    return np.array([pose[0, 3], pose[1, 3], yaw_of(pose)])
 
 
 def yaw_of(pose: np.ndarray) -> float:
+    """Heading (rad, in [-pi, pi]) of a pose or rotation matrix (4x4, 3x3 or 2x2): the angle of
+    its x axis in the ground plane."""
     return float(np.arctan2(pose[1, 0], pose[0, 0]))
+
+
+def yaws_of(poses: np.ndarray) -> np.ndarray:
+    """:func:`yaw_of` of each of (..., n, n) poses or rotation matrices."""
+    poses = np.asarray(poses)
+    return np.arctan2(poses[..., 1, 0], poses[..., 0, 0])
+
+
+def rot2(yaw: float) -> np.ndarray:
+    """2x2 rotation by ``yaw`` (rad): ``rot2(yaw) @ p`` turns ``p`` counter-clockwise."""
+    # math on a Python float: numpy's scalar functions cost ~10x more
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s], [s, c]])
 
 
 def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:

@@ -55,6 +55,19 @@ def test_se2_round_trip_and_points():
     assert np.allclose(v, [[np.cos(2.5), np.sin(2.5)]])
 
 
+def test_yaw_and_planar_rotation_helpers():
+    yaws = np.array([-3.0, -0.4, 0.0, 1.2, 3.1])
+    poses = np.stack([g.se2_to_matrix(1.0, 2.0, y) for y in yaws])
+    assert np.allclose(g.yaws_of(poses), yaws)
+    assert g.yaws_of(poses).tolist() == [g.yaw_of(p) for p in poses]
+    assert g.yaws_of(poses[:, :2, :2]).tolist() == g.yaws_of(poses).tolist()
+    for y in yaws:
+        r = g.rot2(y)
+        assert np.array_equal(r, g.se2_to_matrix(0.0, 0.0, y)[:2, :2])
+        assert g.yaw_of(r) == pytest.approx(y)
+        assert np.array_equal(g.rot2(-y), r.T)
+
+
 def test_orthonormalize_repairs_drifted_rotation():
     pose = g.se2_to_matrix(1, 2, 0.7)
     pose[:3, :3] *= 1.01

@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 
 from radarslam.errors import DataError
-from radarslam.geometry import repair_rotations
+from radarslam.geometry import repair_rotations, rot2, yaw_of, yaws_of
 from radarslam.timestamps import check_timestamps_us
 
 #: Rotation-block tolerance of (N, 4, 4) inputs: the trajectory files' (what read_kitti accepts).
@@ -59,7 +59,7 @@ def to_xy_yaw(poses, what: str = "poses") -> np.ndarray:
                 stacklevel=2,
             )
         arr = fixed.poses
-        out = np.column_stack([arr[:, 0, 3], arr[:, 1, 3], np.arctan2(arr[:, 1, 0], arr[:, 0, 0])])
+        out = np.column_stack([arr[:, 0, 3], arr[:, 1, 3], yaws_of(arr)])
     elif arr.ndim == 2 and arr.shape[1] == 3:
         out = arr.copy()
     else:
@@ -107,7 +107,7 @@ class Alignment2D:
 
     @property
     def yaw_rad(self) -> float:
-        return float(np.arctan2(self.rotation[1, 0], self.rotation[0, 0]))
+        return yaw_of(self.rotation)
 
     @property
     def matrix(self) -> np.ndarray:
@@ -166,8 +166,7 @@ def align_first(est_xy_yaw: np.ndarray, ref_xy_yaw: np.ndarray) -> Alignment2D:
     """The planar transform that puts the first estimated pose exactly on the first reference."""
     e0, r0 = est_xy_yaw[0], ref_xy_yaw[0]
     dyaw = r0[2] - e0[2]
-    c, s = np.cos(dyaw), np.sin(dyaw)
-    rot = np.array([[c, -s], [s, c]])
+    rot = rot2(float(dyaw))
     return Alignment2D(rot, r0[:2] - rot @ e0[:2])
 
 

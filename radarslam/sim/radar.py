@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from radarslam.geometry import make_transform
+from radarslam.geometry import make_transform, rot2
 from radarslam.sim.config import RadarConfig
 from radarslam.sim.world import (
     CLUTTER,
@@ -253,8 +253,7 @@ class RadarModel:
         once per chunk of sweeps, so each sweep works on a small sector instead of the city.
         """
         cfg = self.cfg
-        c, s = np.cos(sensor_yaw), np.sin(sensor_yaw)
-        rot = np.array([[c, s], [-s, c]])
+        rot = rot2(-float(sensor_yaw))  # world -> sensor
         near_lim = np.deg2rad(cfg.near_fov_deg + 35.0)
         far_lim = np.deg2rad(cfg.far_fov_deg + 35.0)
 
@@ -291,8 +290,7 @@ class RadarModel:
         (:data:`LABEL_DTYPE`, same order as the points)."""
         cfg = self.cfg
         noise = cfg.noise
-        c, s = np.cos(sensor_yaw), np.sin(sensor_yaw)
-        rot = np.array([[c, s], [-s, c]])  # world -> sensor
+        rot = rot2(-float(sensor_yaw))  # world -> sensor
 
         near_boxes = world.boxes
         if len(near_boxes):
