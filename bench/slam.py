@@ -305,7 +305,7 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     clean = rebuild_with_false_loops(pipeline, 0.0, rng)
     keys = [kf.key for s in anchored.sessions for kf in pipeline.key_frames(s)]
-    gts = np.stack([pipeline._kf_by_key[k].gt_pose for k in keys])
+    gts = np.stack([pipeline.key_frame(k).gt_pose for k in keys])
     ate_clean = joint_ate(np.stack([clean[k] for k in keys]), gts)
     rows["ate_rebuilt_clean_m"] = ate_clean
     for frac in (0.1, 0.3, 0.5):

@@ -155,7 +155,7 @@ def _scripted_pipeline(reader, accept, **loops):
     for name, value in loops.items():
         setattr(cfg.loops, name, value)
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    pipeline.verifier = pipeline.guided_verifier = _ScriptedVerifier(pipeline, accept)
+    pipeline.verifiers.recognition = pipeline.verifiers.guided = _ScriptedVerifier(pipeline, accept)
     return pipeline
 
 
@@ -164,8 +164,12 @@ def _run_scripted(reader, accept):
 
 
 def _true_pose(pipeline, query, candidate):
-    kfs = pipeline._kf_by_key
-    return invert(kfs[candidate].gt_pose) @ kfs[query].gt_pose
+    return invert(pipeline.key_frame(candidate).gt_pose) @ pipeline.key_frame(query).gt_pose
+
+
+def _by_key(pipeline):
+    """Every key frame of the run by its key."""
+    return {kf.key: kf for name in pipeline.sessions for kf in pipeline.key_frames(name)}
 
 
 def _is_link_pair(pipeline, query, candidate, max_query_index):
@@ -357,9 +361,9 @@ def _run_with_proximity(reader, scenes, accept, prox, ratios=(0.95, 0.95), **loo
 
     loops = {"num_candidates": 3, "proximity_radius_m": 30.0, **loops}
     pipeline = _scripted_pipeline(reader, accept, **loops)
-    pipeline.verifier.constraint_ratio = ratios[0]
+    pipeline.verifiers.recognition.constraint_ratio = ratios[0]
     scripted = _ScriptedVerifier(pipeline, record, ratios[1])
-    pipeline.proximity_verifier = pipeline.confirmation_verifier = scripted
+    pipeline.verifiers.proximity = pipeline.verifiers.confirmation = scripted
     return pipeline, pipeline.run(scenes), asked
 
 
@@ -377,7 +381,7 @@ def test_linked_sessions_close_loops_by_proximity(reader, scenes):
     pipeline, res, asked = _run_with_proximity(reader, scenes, _link_votes_up_to(1), _true_pose)
     first, second = scenes
     assert asked, "linked key frames near the map must be verified by proximity"
-    kfs = pipeline._kf_by_key
+    kfs = _by_key(pipeline)
     for q, c in asked:
         assert (q.session, c.session) == (second, first) and q.index >= 1
         gap = np.linalg.norm(kfs[q].gt_pose[:2, 3] - kfs[c].gt_pose[:2, 3])
@@ -426,7 +430,7 @@ def test_a_lone_vote_is_confirmed_from_its_prediction_and_links(reader, scenes):
     )
     first, second = scenes
     assert [(q.session, q.index) for q, _ in asked[:2]] == [(second, 2), (second, 0)]
-    kfs = pipeline._kf_by_key
+    kfs = _by_key(pipeline)
     for q, c in asked[:2]:  # the first session's key frame nearest to where the vote puts it
         assert c.session == first
         gap = np.linalg.norm(kfs[q].gt_pose[:2, 3] - kfs[c].gt_pose[:2, 3])
@@ -647,7 +651,7 @@ def test_proximity_search_within_one_session_skips_its_recent_past(reader, scene
         num_candidates=1,
     )
     assert asked, "a slow drive stays within 30 m of its own past"
-    kfs = pipeline._kf_by_key
+    kfs = _by_key(pipeline)
     for q, c in asked:
         assert q.session == c.session
         assert kfs[q].timestamp_us - kfs[c].timestamp_us >= 4.0e6
@@ -668,7 +672,7 @@ def test_scancontext_candidates_search_only_sessions_outside_the_map(reader, sce
         assert lp.query.index % 2 == 0
         assert lp.reason and (lp.reason == "ok") == lp.accepted
     # every key frame of the run is in the database, whether it searched or not
-    assert len(pipeline.scancontext) == res.timings.key_frames
+    assert len(pipeline.scancontext.database) == res.timings.key_frames
 
 
 def test_reversed_search_queries_turned_images_of_sessions_outside_the_map(
@@ -718,7 +722,7 @@ def test_reversed_search_can_be_switched_off(reader, scenes, recognizer):
 
 
 def test_turned_cloud_is_the_same_world_seen_half_a_turn_round():
-    from radarslam.slam.pipeline import turned_cloud
+    from radarslam.slam.proposers import turned_cloud
     from radarslam.types import ACCUMULATED_DTYPE, AccumulatedCloud
 
     rng = np.random.default_rng(0)
@@ -797,13 +801,13 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
     # B's odometry has drifted by now; B's latest loop, against C, was measured exactly. The
     # guess for B's newest key frame against C's must chain from that loop, not the placement.
     from radarslam.io.loops import NodeKey
-    from radarslam.slam.pipeline import KeyFrame
+    from radarslam.slam.state import KeyFrame
 
     cfg = SlamConfig()
     cfg.loops.guess_from_last_loop = enabled
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
     for name in ("A", "B", "C"):
-        pipeline._start_session(name)
+        pipeline.start_session(name)
     c_from_b_true = se2_to_matrix(20.0, 5.0, 0.3)  # C's odometry frame from B's (the truth)
     group = pipeline.groups[pipeline.sessions["C"].group]
     group.from_session["B"] = group.from_session["C"] @ c_from_b_true @ se2_to_matrix(0, 3, 0)
@@ -814,8 +818,7 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
         kf = KeyFrame(
             NodeKey(session, index), index, "", pose, pose, np.zeros((0, 2)), None, np.eye(4)
         )
-        pipeline.sessions[session].key_frames.append(kf)
-        pipeline._kf_by_key[kf.key] = kf
+        pipeline.state.add(kf)
         return kf
 
     b0 = key_frame("B", 0, se2_to_matrix(0.0, 0.0, 0.0))
@@ -823,11 +826,9 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
     c0 = key_frame("C", 0, se2_to_matrix(-20.0, -4.0, -0.3))
     c1 = key_frame("C", 1, se2_to_matrix(-12.0, -3.0, -0.2))
     measured = invert(c0.odometry_pose) @ c_from_b_true @ b0.odometry_pose
-    pipeline._last_loop[("B", None)] = LoopCandidate(
-        b0.key, c0.key, 0, 0, 0.0, True, "ok", measured
-    )
+    pipeline.verification.note_loop(LoopCandidate(b0.key, c0.key, 0, 0, 0.0, True, "ok", measured))
     truth = invert(c1.odometry_pose) @ c_from_b_true @ b1.odometry_pose
-    guess = pipeline._guess(b1, c1)
+    guess = pipeline.verification.guess(b1, c1)
     if enabled:
         np.testing.assert_allclose(guess, truth, atol=1e-9)
     else:  # the placement's 3 m
@@ -843,7 +844,7 @@ def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit
     pipeline = SlamPipeline(reader, cfg, progress=False)
     pipeline.run(scenes)
     kf = pipeline.key_frames(scenes[0])[6]
-    past, centred = (len(pipeline._local_map(kf, past_only=p)) for p in (True, False))
+    past, centred = (len(pipeline.state.local_map(kf, past_only=p)) for p in (True, False))
     assert past < centred
     turned, ahead = se2_to_matrix(1.0, 3.0, np.pi - 0.2), se2_to_matrix(1.0, 0.0, 0.2)
     expected = {
@@ -854,7 +855,7 @@ def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit
     for mode, cases in expected.items():
         pipeline.config.key_frames.candidate_map = mode
         got = {
-            name: pipeline._cand_past(guess)
+            name: pipeline.verification.candidate_past(guess)
             for name, guess in (("turned", turned), ("ahead", ahead), ("unknown", None))
         }
         assert got == cases, mode
@@ -867,10 +868,11 @@ def test_only_proximity_registrations_drop_single_clutter_returns(reader, min_ne
     cfg = SlamConfig()
     cfg.loops.proximity_min_neighbors = min_neighbors
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    assert pipeline.proximity_verifier.config.min_neighbors == (min_neighbors or 0)
-    for other in ("verifier", "guided_verifier", "reversed_verifier", "confirmation_verifier"):
-        assert getattr(pipeline, other).config.min_neighbors == 0, other
-    assert pipeline.confirmation_verifier.config == pipeline.proximity_verifier.config.model_copy(
+    verifiers = pipeline.verifiers
+    assert verifiers.proximity.config.min_neighbors == (min_neighbors or 0)
+    for other in ("recognition", "guided", "turned", "confirmation"):
+        assert getattr(verifiers, other).config.min_neighbors == 0, other
+    assert verifiers.confirmation.config == verifiers.proximity.config.model_copy(
         update={"min_neighbors": 0}
     )
 

@@ -1,0 +1,58 @@
+"""Graph insertion: sessions' odometry chains and verified loops into the pose graph."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from radarslam.io.loops import LoopCandidate, NodeKey
+from radarslam.slam.state import Group, KeyFrame, MapState, Session
+
+
+class GraphInsertion:
+    """Puts sessions, key frames and loops into ``graph``; every loop factor added is logged as
+    accepted in ``state.loops`` and its information matrix kept in :attr:`loop_information`."""
+
+    def __init__(self, state: MapState, graph):
+        self.state = state
+        self.graph = graph
+        #: Information matrix of every loop factor added, by (candidate, query).
+        self.loop_information: dict[tuple[NodeKey, NodeKey], np.ndarray] = {}
+
+    def add_node(self, session: Session, kf: KeyFrame) -> None:
+        """The key frame's odometry factor to its predecessor (the first has none)."""
+        if kf.key.index == 0:
+            return
+        self.graph.add_odometry(
+            session.name, kf.key.index - 1, kf.key.index, kf.relative, kf.relative_cov
+        )
+
+    def add_loop(self, record: LoopCandidate, information: np.ndarray) -> None:
+        self.graph.add_loop(
+            record.candidate, record.query, record.candidate_from_query, information
+        )
+        self.loop_information[(record.candidate, record.query)] = information
+        self.state.loops.append(record)
+
+    def insert_session(self, session: Session, world_from_session: np.ndarray, anchor: str):
+        """Put a session's odometry chain into the graph at ``world_from_session``."""
+        kfs = session.key_frames
+        if not kfs:
+            return
+        self.graph.add_session(session.name, world_from_session @ kfs[0].odometry_pose, anchor)
+        session.inserted = True
+        session.world_from_session = world_from_session
+        for kf in kfs[1:]:
+            self.add_node(session, kf)
+
+    def insert_group(self, group: Group, anchor: str) -> None:
+        """Put every session of a group into the graph (the first with ``anchor``) and its
+        loops; a group outside the map becomes its own component."""
+        for k, name in enumerate(group.from_session):
+            self.insert_session(
+                self.state.sessions[name],
+                group.from_session[name],
+                anchor if k == 0 else "unknown",
+            )
+        for p in group.loops:
+            self.add_loop(p.record, p.information)
+        group.loops = []

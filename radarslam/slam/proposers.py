@@ -1,0 +1,242 @@
+"""Loop-candidate proposers: where a key frame may have been before.
+
+Every proposer answers :meth:`CandidateProposer.propose` with the candidates the key frame is to
+be verified against, in order; the pipeline asks them in turn (recognition, turned, ScanContext,
+proximity), telling each whether an earlier one closed a loop already, and reports back to each
+whether one of its own candidates was accepted (:meth:`CandidateProposer.settle`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import numpy as np
+
+from radarslam.io.loops import NodeKey
+from radarslam.slam.state import KeyFrame, MapState, Session
+from radarslam.types import AccumulatedCloud
+
+#: A half turn about the z axis.
+HALF_TURN = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def turned_cloud(cloud: AccumulatedCloud) -> AccumulatedCloud:
+    """The cloud turned by 180 deg about its reference sensor: roughly what the sensor sees of
+    the same place when the street is driven the other way round (the far field, which only the
+    forward radar reaches, stays on the wrong side). Its sample token gets a ``#turned`` suffix
+    so that a recognizer's per-token feature cache keeps the two apart."""
+    points = cloud.points.copy()
+    for name in ("x", "y", "vx", "vy", "vx_comp", "vy_comp"):
+        if name in points.dtype.names:
+            points[name] = -points[name]
+    return replace(
+        cloud,
+        points=points,
+        world_from_ref=cloud.world_from_ref @ HALF_TURN,
+        sample_token=f"{cloud.sample_token}#turned" if cloud.sample_token else "",
+    )
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """A candidate key frame for a loop with the query, and how to verify it."""
+
+    candidate: KeyFrame
+    distance: float  # descriptor distance (NaN: not from a descriptor)
+    source: str  # the ``source`` column of loops.csv
+    #: a field of :class:`~radarslam.slam.verification.Verifiers` (None: the global search, or
+    #: the guided one where odometry or the map predicts the pose)
+    verifier: str | None = None
+    hint: np.ndarray | None = None  # where the search starts without a prediction
+
+
+class CandidateProposer(Protocol):
+    def propose(
+        self, session: Session, kf: KeyFrame, cloud: AccumulatedCloud, closed: bool
+    ) -> list[Proposal]:
+        """Candidates for the session's newest key frame ``kf`` (``cloud``: its accumulated
+        cloud); ``closed``: an earlier proposer's candidate was accepted."""
+        ...
+
+    def settle(self, session: Session, kf: KeyFrame, accepted: bool) -> None:
+        """Whether one of the candidates just proposed for ``kf`` was accepted."""
+        ...
+
+
+class RecognitionProposer:
+    """AutoPlace: the descriptor of the last key frames (t-2, t-1, t) queried among earlier key
+    frames, the recent past of the same session excluded; the key frame is then added. The
+    recognizer encodes each key frame's image once (its feature cache is keyed by sample
+    token)."""
+
+    def __init__(self, config, state: MapState, recognizer: Callable, timings):
+        self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
+
+    def propose(self, session, kf, cloud, closed):
+        cfg = self.config.loops
+        rec = self.recognizer()
+        t0 = time.perf_counter()
+        desc, rcs = rec.describe(self.state.sequence(session, cloud, rec.seq_len))
+        candidates = []
+        if kf.key.index - session.last_loop_kf > cfg.min_key_frames_between_loops:
+            candidates = rec.query_descriptor(
+                desc, rcs, k=cfg.num_candidates, exclude=self.state.excluded(kf)
+            )
+        rec.add_descriptor(desc, rcs, kf.key)
+        self.timings.place_recognition_s += time.perf_counter() - t0
+        budget = None if session.inserted else cfg.unlinked_candidates_per_key_frame
+        proposals = []
+        for cand in candidates:
+            gate = cfg.max_descriptor_distance
+            if gate is not None and cand.descriptor_distance > gate:
+                continue
+            if budget is not None:
+                if budget == 0:
+                    break
+                budget -= 1
+            proposals.append(
+                Proposal(self.state.key_frame(cand.key), cand.descriptor_distance, "recognition")
+            )
+        return proposals
+
+    def settle(self, session, kf, accepted):
+        pass
+
+
+class TurnedProposer:
+    """For a session outside the map when nothing closed the key frame yet: AutoPlace queried
+    with the key frame's image sequence turned by 180 deg, i.e. as the street looks driven the
+    other way round, against the key frames of ``loops.reversed_targets``; the best match is
+    verified by the translation search over headings near 180 deg (``loops.reversed_search``).
+    It searches every ``reversed_every``-th key frame, less often after repeated misses."""
+
+    def __init__(self, config, state: MapState, recognizer: Callable, timings):
+        self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
+        self._searched: NodeKey | None = None
+
+    def propose(self, session, kf, cloud, closed):
+        self._searched = None
+        cfg = self.config.loops
+        if closed or not cfg.reversed_search:
+            return []
+        interval = cfg.reversed_every
+        if cfg.reversed_backoff_searches is not None:
+            interval <<= min(session.reversed_misses // cfg.reversed_backoff_searches, 2)
+        if (
+            self.state.groups[session.group].in_map
+            or kf.key.index < self.config.key_frames.local_map_neighbors
+            or kf.key.index - session.last_reversed_kf < interval
+            or kf.key.index - session.last_loop_kf <= cfg.min_key_frames_between_loops
+        ):
+            return []
+        session.last_reversed_kf = kf.key.index
+        self._searched = kf.key
+        t0 = time.perf_counter()
+        rec = self.recognizer()
+        sequence = self.state.sequence(session, cloud, rec.seq_len)
+        desc, rcs = rec.describe([turned_cloud(c) for c in sequence])
+        sessions = self.state.sessions
+        if cfg.reversed_targets == "map":
+
+            def exclude(key: NodeKey) -> bool:
+                return not sessions[key.session].inserted
+        else:
+            group = session.group
+
+            def exclude(key: NodeKey) -> bool:
+                return sessions[key.session].group == group
+
+        candidates = rec.query_descriptor(desc, rcs, k=1, exclude=exclude)
+        self.timings.place_recognition_s += time.perf_counter() - t0
+        return [
+            Proposal(
+                self.state.key_frame(c.key),
+                c.descriptor_distance,
+                "reversed",
+                verifier="turned",
+                hint=HALF_TURN,
+            )
+            for c in candidates
+        ]
+
+    def settle(self, session, kf, accepted):
+        if self._searched == kf.key:
+            session.reversed_misses = 0 if accepted else session.reversed_misses + 1
+
+
+class ScanContextProposer:
+    """For a session outside the map when nothing closed the key frame yet: the best
+    rotation-invariant candidate among the other groups' key frames, verified by the global
+    search (``loops.scancontext_search``). Every key frame is stored for later queries."""
+
+    def __init__(self, config, state: MapState, timings):
+        from radarslam.slam.scancontext_candidates import ScanContextCandidates
+
+        self.config, self.state, self.timings = config, state, timings
+        self.database = ScanContextCandidates(config.loops.scancontext_ring_candidates)
+
+    def propose(self, session, kf, cloud, closed):
+        cfg = self.config
+        t0 = time.perf_counter()
+        context = self.database.describe(kf.cloud_xy_ego)
+        candidates = []
+        if (
+            not closed
+            and not self.state.groups[session.group].in_map
+            and kf.key.index >= cfg.key_frames.local_map_neighbors
+            and kf.key.index % cfg.loops.scancontext_every == 0
+            and kf.key.index - session.last_loop_kf > cfg.loops.min_key_frames_between_loops
+        ):
+            group, sessions = session.group, self.state.sessions
+            candidates = self.database.query(
+                kf.cloud_xy_ego,
+                lambda key: sessions[key.session].group != group,
+                k=1,
+                context=context,
+            )
+        self.database.add(kf.key, kf.cloud_xy_ego, context)
+        self.timings.place_recognition_s += time.perf_counter() - t0
+        return [
+            Proposal(self.state.key_frame(c.key), c.distance, "scancontext") for c in candidates
+        ]
+
+    def settle(self, session, kf, accepted):
+        pass
+
+
+class ProximityProposer:
+    """When nothing else closed the key frame: the nearest key frames of its group within
+    ``loops.proximity_radius_m`` of its predicted position, registered from that prediction
+    (ICP only). Once a session is linked, this closes a loop at nearly every revisiting key
+    frame, which is what pulls the whole session onto the map."""
+
+    def __init__(self, config, state: MapState):
+        self.config, self.state = config, state
+
+    def candidates(
+        self, session: Session, kf: KeyFrame, among: set[str] | None = None
+    ) -> list[Proposal]:
+        """Key frames of the query's group (of its sessions ``among``, if given) near the
+        query's predicted position, nearest first, at most one per session (the query's own
+        recent past excluded)."""
+        cfg = self.config.loops
+        if cfg.proximity_radius_m is None:
+            return []
+        group = self.state.groups[session.group]
+        # Candidates and query are placed the same way (group link @ odometry) so that a common
+        # error of the link cancels; the verification's guess then uses the graph's estimate.
+        query_xy = (group.from_session[session.name] @ kf.odometry_pose)[:2, 3]
+        found = self.state.near_key_frames(group, query_xy, among, recent_of=kf)
+        return [
+            Proposal(k, float("nan"), "proximity", verifier="proximity")
+            for _, k in found[: cfg.proximity_candidates]
+        ]
+
+    def propose(self, session, kf, cloud, closed):
+        return [] if closed else self.candidates(session, kf)
+
+    def settle(self, session, kf, accepted):
+        pass

@@ -1,0 +1,218 @@
+"""Verification of loop candidates: which :class:`~radarslam.slam.loop_closure.LoopVerifier`
+variant registers a candidate, from which prediction, and the checks of its result against
+that prediction."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from radarslam.geometry import invert, wrap_angle, yaw_of
+from radarslam.io.loops import LoopCandidate
+from radarslam.slam.state import KeyFrame, MapState
+
+
+def se2_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(metres, degrees) between two planar poses."""
+    d = invert(a) @ b
+    return float(np.hypot(d[0, 3], d[1, 3])), float(
+        abs(np.degrees(wrap_angle(np.arctan2(d[1, 0], d[0, 0]))))
+    )
+
+
+@dataclass
+class Verifiers:
+    """The verifier variants, one per kind of prediction a candidate comes with."""
+
+    #: no prediction: the global search over headings and translations
+    recognition: object
+    #: predicted by odometry or the map: a local search around the prediction
+    guided: object
+    #: proximity candidates, predicted by the map to a metre or two: ICP from the prediction
+    proximity: object
+    #: a lone vote's checks: as ``proximity``, on every point
+    confirmation: object
+    #: turned-image candidates: the global search over headings near a half turn
+    turned: object
+
+    @classmethod
+    def from_config(cls, cfg) -> Verifiers:
+        from radarslam.slam.loop_closure import LoopVerifier
+
+        lv = cfg.backend.loop_verification
+        guided = lv.model_copy(
+            update={
+                "heading_step_deg": 360.0,  # one hypothesis: the predicted heading
+                "search_radius_m": cfg.loops.guided_search_radius_m,
+                "refine_top_k": 1,
+            }
+        )
+        # Proximity candidates come with the map's prediction, good to a metre or two: ICP from
+        # it alone, no search over headings and translations.
+        proximity = lv.model_copy(
+            update={
+                "heading_step_deg": 360.0,
+                "correlative_search": False,
+                "refine_top_k": 1,
+                "max_range_m": cfg.loops.proximity_max_range_m,
+                "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
+                "icp_relative_tolerance": cfg.loops.proximity_icp_relative_tolerance,
+            }
+        )
+        # Lone votes are confirmed from their prediction the same way, but on every point: the
+        # constraint-ratio test they rely on was calibrated on maps with the clutter in.
+        confirmation = LoopVerifier(proximity)
+        if cfg.loops.proximity_min_neighbors is not None:
+            proximity = proximity.model_copy(
+                update={"min_neighbors": cfg.loops.proximity_min_neighbors}
+            )
+        # Turned-image candidates come with a rough relative heading (half a turn) but no
+        # position: the global translation search, over headings near 180 deg only.
+        turned = lv.model_copy(
+            update={"heading_range_deg": cfg.loops.reversed_heading_range_deg, "refine_top_k": 1}
+        )
+        return cls(
+            recognition=LoopVerifier(lv),
+            guided=LoopVerifier(guided),
+            proximity=LoopVerifier(proximity),
+            confirmation=confirmation,
+            turned=LoopVerifier(turned),
+        )
+
+
+class Verification:
+    """Registers a query key frame's local map against a candidate's, from the best prediction
+    there is: odometry inside a session, the group's placement (or its latest loop) across
+    sessions of one group, none across groups."""
+
+    def __init__(self, config, state: MapState, verifiers: Verifiers):
+        self.config = config
+        self.state = state
+        self.verifiers = verifiers
+        # (query session, candidate session or None: any) -> the latest loop inside one group
+        self._last_loop: dict[tuple[str, str | None], LoopCandidate] = {}
+
+    def note_loop(self, record: LoopCandidate) -> None:
+        """An accepted loop between two sessions of one group: later guesses outside the map
+        chain from it (``loops.guess_from_last_loop``)."""
+        self._last_loop[(record.query.session, record.candidate.session)] = record
+        self._last_loop[(record.query.session, None)] = record
+
+    def guess(self, query: KeyFrame, cand: KeyFrame) -> np.ndarray | None:
+        """The predicted candidate_from_query (None: nothing predicts it)."""
+        state = self.state
+        qs, cs = state.sessions[query.key.session], state.sessions[cand.key.session]
+        if qs is cs:
+            return invert(cand.odometry_pose) @ query.odometry_pose
+        if qs.group != cs.group:
+            return None
+        last = self._last_loop.get((qs.name, cs.name)) or self._last_loop.get((qs.name, None))
+        if not qs.inserted and last is not None and self.config.loops.guess_from_last_loop:
+            # Outside the map no graph corrects the placements, and both odometry chains drift
+            # from where the sessions were linked: chain from the query session's latest loop
+            # (with the candidate's session if there is one) over a short span of odometry.
+            lq, lc = state.key_frame(last.query), state.key_frame(last.candidate)
+            partner = state.groups[qs.group].from_session[last.candidate.session]
+            query_in_group = (
+                partner
+                @ lc.odometry_pose
+                @ last.candidate_from_query
+                @ invert(lq.odometry_pose)
+                @ query.odometry_pose
+            )
+            return invert(state.pose_in_group(cand)) @ query_in_group
+        return invert(state.pose_in_group(cand)) @ state.pose_in_group(query)
+
+    def candidate_past(self, guess: np.ndarray | None) -> bool:
+        """Whether the candidate's local map takes its past key frames only
+        (``key_frames.candidate_map``), given the predicted candidate_from_query or None."""
+        mode = self.config.key_frames.candidate_map
+        if mode == "past_if_reversed":
+            return guess is not None and abs(yaw_of(guess)) > np.pi / 2
+        return mode == "past"
+
+    def _register(self, verifier, query: KeyFrame, cand: KeyFrame, distance, guess, start):
+        state = self.state
+        cand_past = self.candidate_past(guess)
+        return verifier.verify_candidate(
+            query.key,
+            cand.key,
+            query.timestamp_us,
+            cand.timestamp_us,
+            distance,
+            state.local_map(query, past_only=True),
+            state.local_map(cand, past_only=cand_past),
+            start,
+            cache_keys=(state.map_key(query, True), state.map_key(cand, cand_past)),
+        )
+
+    def check(
+        self,
+        query: KeyFrame,
+        cand: KeyFrame,
+        distance: float,
+        source: str,
+        verifier: str | None = None,
+        hint: np.ndarray | None = None,
+    ) -> tuple[LoopCandidate, object, np.ndarray | None]:
+        """(record, verification, guess) of one candidate. ``verifier`` names a field of
+        :class:`Verifiers` (None: ``recognition`` or ``guided``, as the guess allows); ``hint``:
+        where the search starts when neither odometry nor the map predicts the pose."""
+        guess = self.guess(query, cand)
+        if verifier is None:
+            ver_ = self.verifiers.recognition if guess is None else self.verifiers.guided
+        else:
+            ver_ = getattr(self.verifiers, verifier)
+        start = guess if guess is not None else hint
+        record, ver = self._register(ver_, query, cand, distance, guess, start)
+        record = replace(record, source=source)
+        if guess is not None and cand.key.session != query.key.session:
+            # The guess came from the map (or the group): a pose far from it is a look-alike.
+            record = self.near_prediction(record, guess, "the map's prediction")
+        return record, ver, guess
+
+    def confirm(self, kf: KeyFrame, other: KeyFrame, guess: np.ndarray):
+        """(record, verification) of a lone vote's check: ``kf`` registered against ``other``
+        from the vote's prediction ``guess``."""
+        cfg = self.config.loops
+        record, ver = self._register(
+            self.verifiers.confirmation, kf, other, float("nan"), guess, guess
+        )
+        record = self.near_prediction(
+            replace(record, source="confirmation"), guess, "the vote's prediction"
+        )
+        if record.accepted and not record.constraint_ratio >= cfg.confirm_min_constraint_ratio:
+            record = replace(
+                record,
+                accepted=False,
+                reason=f"constraint_ratio {record.constraint_ratio:.2f} < "
+                f"{cfg.confirm_min_constraint_ratio} (loops.confirm_min_constraint_ratio)",
+            )
+        return record, ver
+
+    def near_prediction(self, record: LoopCandidate, guess: np.ndarray, what: str):
+        """``record`` rejected when accepted but farther than ``loops.map_consistency_*`` from
+        ``guess`` (``what`` names the prediction in the reason)."""
+        cfg = self.config.loops
+        dist_m, dyaw_deg = se2_distance(guess, record.candidate_from_query)
+        if record.accepted and (
+            dist_m > cfg.map_consistency_m or dyaw_deg > cfg.map_consistency_deg
+        ):
+            reason = f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from {what}"
+            return replace(record, accepted=False, reason=reason)
+        return record
+
+    def is_weak(self, record: LoopCandidate) -> bool:
+        """Whether a rejected global registration is a weak vote (``loops.weak_vote_*``)."""
+        cfg = self.config.loops
+        lv = self.config.backend.loop_verification
+        if cfg.weak_vote_min_tight_fitness is None:
+            return False
+        return bool(
+            record.fitness >= lv.min_fitness
+            and record.overlap >= lv.min_overlap
+            and record.inlier_rmse_m <= cfg.weak_vote_max_inlier_rmse_m
+            and record.tight_fitness >= cfg.weak_vote_min_tight_fitness
+            and record.constraint_ratio >= cfg.weak_vote_min_constraint_ratio
+        )
