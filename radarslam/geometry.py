@@ -137,22 +137,6 @@ def rot2(yaw: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 transform to (N, 3) points (or (N, 2), taken at z = 0)."""
-    pts = np.asarray(points_b, dtype=np.float64)
-    if pts.shape[1] == 2:
-        pts = np.column_stack([pts, np.zeros(len(pts))])
-    return pts @ a_from_b[:3, :3].T + a_from_b[:3, 3]
-
-
-def rotate_vectors(a_from_b: np.ndarray, vectors_b: np.ndarray) -> np.ndarray:
-    """Rotate (N, 2) or (N, 3) free vectors (velocities): rotation only, no translation."""
-    v = np.asarray(vectors_b, dtype=np.float64)
-    if v.shape[1] == 2:
-        return v @ a_from_b[:2, :2].T
-    return v @ a_from_b[:3, :3].T
-
-
 _F64 = np.dtype(np.float64)
 #: Default tolerance of :func:`rigid_problem` on ``R R^T - I``, ``det R - 1`` and the bottom row.
 RIGID_TOLERANCE = 1e-6
@@ -280,19 +264,6 @@ def repair_rotations(
     out[idx, :3, :3] = u @ vt  # det(u vt) = +1: det R > 0 and R is near a rotation
     out[idx, 3] = (0.0, 0.0, 0.0, 1.0)
     return RotationRepair(out, len(idx), float(dev[idx].max()))
-
-
-def orthonormalize(pose: np.ndarray) -> np.ndarray:
-    """Project the rotation block back onto SO(3) (SVD), keeping the translation."""
-    out = np.array(pose, dtype=np.float64, copy=True)
-    u, _, vt = np.linalg.svd(out[:3, :3])
-    r = u @ vt
-    if np.linalg.det(r) < 0:
-        u[:, -1] *= -1
-        r = u @ vt
-    out[:3, :3] = r
-    out[3] = [0, 0, 0, 1]
-    return out
 
 
 def wrap_angle(a):

@@ -46,13 +46,10 @@ def test_invert_and_compose():
     assert np.allclose(a_from_b @ g.invert(a_from_b), np.eye(4), atol=1e-12)
 
 
-def test_se2_round_trip_and_points():
+def test_se2_round_trip():
     pose = g.se2_to_matrix(3.0, -2.0, 2.5)
     assert np.allclose(g.matrix_to_se2(pose), [3.0, -2.0, 2.5])
-    pts = g.transform_points(pose, np.array([[1.0, 0.0]]))
-    assert np.allclose(pts, [[3 + np.cos(2.5), -2 + np.sin(2.5), 0.0]])
-    v = g.rotate_vectors(pose, np.array([[1.0, 0.0]]))
-    assert np.allclose(v, [[np.cos(2.5), np.sin(2.5)]])
+    assert np.allclose(pose[:2, 3] + pose[:2, :2] @ [1.0, 0.0], [3 + np.cos(2.5), -2 + np.sin(2.5)])
 
 
 def test_yaw_and_planar_rotation_helpers():
@@ -68,11 +65,13 @@ def test_yaw_and_planar_rotation_helpers():
         assert np.array_equal(g.rot2(-y), r.T)
 
 
-def test_orthonormalize_repairs_drifted_rotation():
+def test_repair_rotations_repairs_drifted_rotation():
     pose = g.se2_to_matrix(1, 2, 0.7)
-    pose[:3, :3] *= 1.01
-    pose[0, 1] += 0.02
-    fixed = g.orthonormalize(pose)
+    pose[:3, :3] *= 1.003
+    pose[0, 1] += 0.002
+    repair = g.repair_rotations(pose[None])
+    assert repair.count == 1 and 0 < repair.worst <= g.REPAIR_TOLERANCE
+    fixed = repair.poses[0]
     r = fixed[:3, :3]
     assert np.allclose(r @ r.T, np.eye(3), atol=1e-12)
     assert np.allclose(fixed[:3, 3], [1, 2, 0])

@@ -83,14 +83,6 @@ def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
-def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a ⊕ b for (..., 3) x/y/yaw arrays (broadcasting)."""
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
-    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
-    return np.stack([x, y, _wrap(a[..., 2] + b[..., 2])], axis=-1)
-
-
 def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a⁻¹ ⊕ b (the pose of b in a's frame) for (..., 3) arrays."""
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])

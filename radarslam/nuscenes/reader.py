@@ -116,25 +116,14 @@ def _channel_list(channels) -> list[str]:
         ) from None
 
 
-def points_in_reference(
-    points: np.ndarray,
-    ref_from_sensor: np.ndarray,
-    channel_index: int,
-    sweep_index: int,
-    time_lag_s: float,
-) -> np.ndarray:
-    """One sweep's radar points (:data:`RADAR_DTYPE`) as :data:`ACCUMULATED_DTYPE` in a reference
-    frame: positions transformed, velocity vectors (vx, vy, 0) rotated with them in 3-D (the
-    devkit leaves velocities in each sweep's sensor frame)."""
-    return stack_in_reference([(points, ref_from_sensor, channel_index, sweep_index, time_lag_s)])
-
-
 def stack_in_reference(
     parts: Sequence[tuple[np.ndarray, np.ndarray, int, int, float]],
 ) -> np.ndarray:
-    """:func:`points_in_reference` of every ``(points, ref_from_sensor, channel_index,
-    sweep_index, time_lag_s)``, concatenated: one vectorised pass over all the sweeps of a cloud
-    (35 per key frame) instead of a dozen numpy calls per sweep."""
+    """The radar points (:data:`RADAR_DTYPE`) of every ``(points, ref_from_sensor,
+    channel_index, sweep_index, time_lag_s)`` as :data:`ACCUMULATED_DTYPE` in the reference frame,
+    concatenated: positions transformed, velocity vectors (vx, vy, 0) rotated with them in 3-D
+    (the devkit leaves velocities in each sweep's sensor frame). One vectorised pass over all the
+    sweeps of a cloud (35 per key frame) instead of a dozen numpy calls per sweep."""
     parts = [p for p in parts if len(p[0])]
     if not parts:
         return np.zeros(0, dtype=ACCUMULATED_DTYPE)

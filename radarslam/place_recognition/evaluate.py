@@ -9,7 +9,6 @@ turns a ranking into recall@N, the PR curve, max F1 and AP (reference definition
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -291,14 +290,6 @@ def write_results(
     if plot:
         paths["png"] = save_pr_plot({r.name: r.curve for r in results}, out / f"{stem}_pr.png")
     return paths
-
-
-def load_results(path: str | Path) -> list[dict]:
-    path = Path(path)
-    try:
-        return json.loads(path.read_text())["rows"]
-    except (OSError, ValueError, KeyError) as exc:
-        raise DataError(f"{path}: not a results file ({exc})") from None
 
 
 # ---- method factories (CLI, ablation, bench) ------------------------------------------------

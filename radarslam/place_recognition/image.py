@@ -86,19 +86,6 @@ def rasterise(xy: np.ndarray, cfg: ImageConfig, rcs01: np.ndarray | None = None)
     return out
 
 
-def to_float(images: np.ndarray, channel_axis: int | None = None) -> np.ndarray:
-    """uint8 images as float32 in [0, 1].
-
-    Channel 0 (occupancy) is {0, 1}; extra channels are quantised 0..255 and get divided by 255.
-    ``channel_axis`` names the channel axis when there is one (None: single-channel images).
-    """
-    out = np.asarray(images).astype(np.float32)
-    if channel_axis is not None and out.shape[channel_axis] > 1:
-        view = np.moveaxis(out, channel_axis, 0)
-        view[1:] /= 255.0
-    return out
-
-
 def pack_images(images: np.ndarray) -> np.ndarray:
     """Bit-pack binary occupancy images (N, H, W) along the last axis (8x smaller)."""
     images = np.asarray(images)

@@ -132,10 +132,6 @@ class StreetNetwork:
     def neighbours(self, node: int) -> list[int]:
         return self.adjacency[node]
 
-    def edge_length_total_m(self) -> float:
-        d = self.nodes[self.edges[:, 1]] - self.nodes[self.edges[:, 0]]
-        return float(np.linalg.norm(d, axis=1).sum())
-
 
 @dataclass
 class ParkingSlots:

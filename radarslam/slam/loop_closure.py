@@ -157,11 +157,6 @@ def voxel_downsample_2d(xy: np.ndarray, voxel_m: float) -> np.ndarray:
     return out / counts[:, None]
 
 
-def _rot(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s], [s, c]])
-
-
 def _transform(xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return xy @ pose[:2, :2].T + pose[:2, 3]
 

@@ -60,15 +60,6 @@ class SessionResult:
     gt_poses: np.ndarray | None = None
 
 
-def trajectory_paths(results_dir: str | Path, session: str) -> dict[str, Path]:
-    d = Path(results_dir)
-    return {
-        "slam": d / f"poses_{session}.tum",
-        "odometry": d / f"odometry_{session}.tum",
-        "gt": d / f"gt_{session}.tum",
-    }
-
-
 def write_session(results_dir: str | Path, result: SessionResult) -> None:
     check_session_name(result.name)
     d = Path(results_dir)
