@@ -156,10 +156,11 @@ class OdometryFeed:
         from radarslam.slam.keyframes import SweepBuffer
 
         own_reading = frames is None
-        if own_reading:
 
-            def frames(info):
-                return self.reader.iter_frames(info, filters=self.frame_filter)
+        def read(info: SceneInfo):
+            if frames is not None:
+                return frames(info)
+            return self.reader.iter_frames(info, filters=self.frame_filter)
 
         cfg = self.config
         timings = self.timings
@@ -177,7 +178,7 @@ class OdometryFeed:
             span = None
             pending = 0  # frames not yet reported to the progress bar
             t_data = time.perf_counter()
-            for frame in frames(info):
+            for frame in read(info):
                 t0 = time.perf_counter()
                 if own_reading:  # else the reading process reports its own time
                     timings.data_s += t0 - t_data

@@ -2,17 +2,27 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Literal
+
 import numpy as np
 
 from radarslam.io.loops import LoopCandidate, NodeKey
 from radarslam.slam.state import Group, KeyFrame, MapState, Session
+
+if TYPE_CHECKING:
+    from radarslam.slam.pose_graph import PoseGraph
+
+
+#: How a session's first pose enters the graph: on the tight prior, or on the weak one
+#: (``pose_graph.unknown_anchor_sigmas``) of a session whose place is not known.
+Anchor = Literal["prior", "unknown"]
 
 
 class GraphInsertion:
     """Puts sessions, key frames and loops into ``graph``; every loop factor added is logged as
     accepted in ``state.loops`` and its information matrix kept in :attr:`loop_information`."""
 
-    def __init__(self, state: MapState, graph):
+    def __init__(self, state: MapState, graph: PoseGraph) -> None:
         self.state = state
         self.graph = graph
         #: Information matrix of every loop factor added, by (candidate, query).
@@ -22,6 +32,8 @@ class GraphInsertion:
         """The key frame's odometry factor to its predecessor (the first has none)."""
         if kf.key.index == 0:
             return
+        # every key frame after a session's first has its motion (make_key_frame)
+        assert kf.relative is not None and kf.relative_cov is not None
         self.graph.add_odometry(
             session.name, kf.key.index - 1, kf.key.index, kf.relative, kf.relative_cov
         )
@@ -33,7 +45,9 @@ class GraphInsertion:
         self.loop_information[(record.candidate, record.query)] = information
         self.state.loops.append(record)
 
-    def insert_session(self, session: Session, world_from_session: np.ndarray, anchor: str):
+    def insert_session(
+        self, session: Session, world_from_session: np.ndarray, anchor: Anchor
+    ) -> None:
         """Put a session's odometry chain into the graph at ``world_from_session``."""
         kfs = session.key_frames
         if not kfs:
@@ -44,7 +58,7 @@ class GraphInsertion:
         for kf in kfs[1:]:
             self.add_node(session, kf)
 
-    def insert_group(self, group: Group, anchor: str) -> None:
+    def insert_group(self, group: Group, anchor: Anchor) -> None:
         """Put every session of a group into the graph (the first with ``anchor``) and its
         loops; a group outside the map becomes its own component."""
         for k, name in enumerate(group.from_session):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from radarslam.io.loops import NodeKey
 from radarslam.slam.insertion import GraphInsertion
 from radarslam.slam.state import KeyFrame, MapState, PendingLoop, Session
 from radarslam.slam.verification import Verification, se2_distance
+
+if TYPE_CHECKING:
+    from radarslam.slam.config import SlamConfig
 
 
 def se2_mean(poses: list[np.ndarray]) -> np.ndarray:
@@ -55,12 +59,12 @@ class SessionLinker:
 
     def __init__(
         self,
-        config,
+        config: SlamConfig,
         state: MapState,
         verification: Verification,
         insertion: GraphInsertion,
         catch_up: Callable[[list[str], list[str]], None],
-    ):
+    ) -> None:
         self.config = config
         self.state = state
         self.verification = verification

@@ -29,7 +29,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Hashable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -167,7 +167,7 @@ def _planar(pose: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class _Hypothesis:
+class Hypothesis:
     pose: np.ndarray  # candidate_from_query initial guess
     heading_deg: float
     score: float
@@ -183,9 +183,14 @@ class LoopVerifier:
 
     def __init__(self, config: LoopVerifierConfig | None = None):
         self.config = config or LoopVerifierConfig()
-        self._o3d = None
+        self._o3d: Any = None  # the open3d module, imported on first use
         self.log: list[LoopCandidate] = []  # every candidate seen by verify_candidate, in order
         self._prepared_maps: OrderedDict[Hashable, np.ndarray] = OrderedDict()
+
+    @property
+    def cached_maps(self) -> int:
+        """How many prepared maps the cache holds (at most :attr:`cache_size`)."""
+        return len(self._prepared_maps)
 
     def verify_candidate(
         self,
@@ -245,8 +250,8 @@ class LoopVerifier:
         # The candidate's, shared by every ICP and scoring below.
         tree = GridIndex(c, cell_m=cfg.max_correspondence_m)
         best = None
-        for hyp in self._hypotheses(q, c, guess):
-            pose = self._icp(q, c, hyp.pose, tree)
+        for hyp in self.hypotheses(q, c, guess):
+            pose = self.icp(q, c, hyp.pose, tree)
             fitness, rmse, _ = self._score(q, c, pose, cfg.max_correspondence_m, tree)
             key = (fitness, -rmse)
             if best is None or key > best[0]:
@@ -323,7 +328,10 @@ class LoopVerifier:
             runtime_ms=(time.perf_counter() - t0) * 1e3,
         )
 
-    def _hypotheses(self, q: np.ndarray, c: np.ndarray, guess: np.ndarray) -> list[_Hypothesis]:
+    def hypotheses(self, q: np.ndarray, c: np.ndarray, guess: np.ndarray) -> list[Hypothesis]:
+        """The starting poses a verification refines: headings around ``guess`` (the whole
+        turn or ``heading_range_deg``), each shifted by the correlative search where it runs
+        and only the ``refine_top_k`` best kept."""
         cfg = self.config
         guess_yaw = math.atan2(guess[1, 0], guess[0, 0])
         if cfg.heading_range_deg >= 360.0:
@@ -345,13 +353,15 @@ class LoopVerifier:
             for pose, (shift, _) in zip(poses, found, strict=True):
                 pose[:2, 3] += shift
             scores = [score for _, score in found]
-        hyps = [_Hypothesis(p, h, sc) for p, h, sc in zip(poses, headings, scores, strict=True)]
+        hyps = [Hypothesis(p, h, sc) for p, h, sc in zip(poses, headings, scores, strict=True)]
         if grid is not None:
             hyps.sort(key=lambda h: -h.score)
             hyps = hyps[: cfg.refine_top_k]
         return hyps
 
-    def _icp(self, q: np.ndarray, c: np.ndarray, init: np.ndarray, tree=None) -> np.ndarray:
+    def icp(self, q: np.ndarray, c: np.ndarray, init: np.ndarray, tree=None) -> np.ndarray:
+        """candidate_from_query refined from ``init`` by the configured backend (``tree``: a
+        prepared :class:`~radarslam.neighbors.GridIndex` of ``c`` for the grid backend)."""
         cfg = self.config
         pose = init
         # The coarse stage aligns a strided subset; the fine one, whose pose is scored, all points.
@@ -374,13 +384,14 @@ class LoopVerifier:
                     cfg.max_iterations,
                 )
             elif cfg.backend == "open3d":
-                pose = self._icp_open3d(src, c, pose, max_corr)
+                pose = self.icp_open3d(src, c, pose, max_corr)
             else:
-                pose = self._icp_small_gicp(src, c, pose, max_corr)
+                pose = self.icp_small_gicp(src, c, pose, max_corr)
             pose = _planar(pose)
         return pose
 
-    def _icp_open3d(self, q, c, init, max_corr) -> np.ndarray:
+    def icp_open3d(self, q, c, init, max_corr) -> np.ndarray:
+        """One point-to-point ICP stage by open3d (the reference the grid backend replays)."""
         if self._o3d is None:
             import open3d as o3d
 
@@ -408,7 +419,7 @@ class LoopVerifier:
         )
         return np.asarray(res.transformation, dtype=np.float64)
 
-    def _icp_small_gicp(self, q, c, init, max_corr) -> np.ndarray:
+    def icp_small_gicp(self, q, c, init, max_corr) -> np.ndarray:
         import small_gicp
 
         res = small_gicp.align(
@@ -526,7 +537,7 @@ class _LikelihoodGrid:
             for dx, dy, w in [(0, 0, self._CENTRE)]
             + [(a, b, self._SIDE) for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1))]
         )
-        self.grid = blur
+        self.grid: np.ndarray = np.asarray(blur)  # the sum's type is ndarray | int to mypy
 
     def best_shifts(
         self, queries: list[np.ndarray], radius_m: float

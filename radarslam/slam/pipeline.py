@@ -101,6 +101,10 @@ from radarslam.types import AccumulatedCloud, SceneInfo
 log = logging.getLogger("radarslam.slam")
 
 
+def _frozen(states: list[int] | None) -> frozenset[int] | None:
+    return None if states is None else frozenset(states)
+
+
 class SlamPipeline:
     """Single- and multi-session radar SLAM over scenes of a :class:`NuScenesRadar` reader.
 
@@ -125,7 +129,9 @@ class SlamPipeline:
             KeyFrameGate(kc.min_travel_m, kc.min_turn_deg, kc.max_interval_s),
         )
         pc = cfg.odometry.points
-        frame_filter = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+        frame_filter = RadarPointFilter(
+            _frozen(pc.invalid_states), _frozen(pc.dynprop_states), _frozen(pc.ambig_states)
+        )
         self.timings = SlamTimings()
         self.feed = OdometryFeed(
             reader, cfg, self.odometry, frame_filter, self.timings, self._dpr_mask

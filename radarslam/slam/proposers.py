@@ -11,13 +11,17 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from radarslam.io.loops import NodeKey
 from radarslam.slam.state import KeyFrame, MapState, Session
 from radarslam.types import AccumulatedCloud
+
+if TYPE_CHECKING:
+    from radarslam.slam.config import SlamConfig
+    from radarslam.slam.result import SlamTimings
 
 #: A half turn about the z axis.
 HALF_TURN = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -29,8 +33,9 @@ def turned_cloud(cloud: AccumulatedCloud) -> AccumulatedCloud:
     forward radar reaches, stays on the wrong side). Its sample token gets a ``#turned`` suffix
     so that a recognizer's per-token feature cache keeps the two apart."""
     points = cloud.points.copy()
+    fields = points.dtype.names or ()
     for name in ("x", "y", "vx", "vy", "vx_comp", "vy_comp"):
-        if name in points.dtype.names:
+        if name in fields:
             points[name] = -points[name]
     return replace(
         cloud,
@@ -72,7 +77,9 @@ class RecognitionProposer:
     recognizer encodes each key frame's image once (its feature cache is keyed by sample
     token)."""
 
-    def __init__(self, config, state: MapState, recognizer: Callable, timings):
+    def __init__(
+        self, config: SlamConfig, state: MapState, recognizer: Callable, timings: SlamTimings
+    ) -> None:
         self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
 
     def propose(self, session, kf, cloud, closed):
@@ -113,7 +120,9 @@ class TurnedProposer:
     verified by the translation search over headings near 180 deg (``loops.reversed_search``).
     It searches every ``reversed_every``-th key frame, less often after repeated misses."""
 
-    def __init__(self, config, state: MapState, recognizer: Callable, timings):
+    def __init__(
+        self, config: SlamConfig, state: MapState, recognizer: Callable, timings: SlamTimings
+    ) -> None:
         self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
         self._searched: NodeKey | None = None
 
@@ -172,7 +181,7 @@ class ScanContextProposer:
     rotation-invariant candidate among the other groups' key frames, verified by the global
     search (``loops.scancontext_search``). Every key frame is stored for later queries."""
 
-    def __init__(self, config, state: MapState, timings):
+    def __init__(self, config: SlamConfig, state: MapState, timings: SlamTimings) -> None:
         from radarslam.slam.scancontext_candidates import ScanContextCandidates
 
         self.config, self.state, self.timings = config, state, timings
@@ -213,7 +222,7 @@ class ProximityProposer:
     (ICP only). Once a session is linked, this closes a loop at nearly every revisiting key
     frame, which is what pulls the whole session onto the map."""
 
-    def __init__(self, config, state: MapState):
+    def __init__(self, config: SlamConfig, state: MapState) -> None:
         self.config, self.state = config, state
 
     def candidates(

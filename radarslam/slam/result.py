@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from radarslam.io.loops import LoopCandidate
+from radarslam.slam.map import StaticMap
 
 
 @dataclass
@@ -41,7 +42,7 @@ class SlamResult:
     sessions: list  # list[radarslam.slam.outputs.SessionResult]
     loops: list[LoopCandidate]
     components: list  # list[radarslam.slam.pose_graph.GraphComponent]
-    static_map: object | None
+    static_map: StaticMap | None
     timings: SlamTimings
     duration_s: float  # sensor time covered by the run
     graph: object = None  # the PoseGraph, for marginals / g2o export

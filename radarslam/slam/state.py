@@ -7,12 +7,17 @@ from __future__ import annotations
 import bisect
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from radarslam.geometry import invert
 from radarslam.io.loops import LoopCandidate, NodeKey
 from radarslam.types import AccumulatedCloud
+
+if TYPE_CHECKING:
+    from radarslam.slam.config import SlamConfig
+    from radarslam.slam.pose_graph import PoseGraph
 
 #: Odometry covariance (x, y, yaw) used where the odometry chain broke (a long gap in the data).
 BROKEN_CHAIN_SIGMAS = np.array([10.0, 10.0, 0.5])
@@ -111,7 +116,7 @@ class MapState:
     ``graph`` is the pose graph (a session's poses come from it once the session is inserted);
     ``config`` the :class:`~radarslam.slam.config.SlamConfig`, read when used."""
 
-    def __init__(self, config, graph):
+    def __init__(self, config: SlamConfig, graph: PoseGraph) -> None:
         self.config = config
         self.graph = graph
         self.sessions: dict[str, Session] = {}

@@ -5,12 +5,16 @@ that prediction."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from radarslam.geometry import invert, wrap_angle, yaw_of
-from radarslam.io.loops import LoopCandidate
+from radarslam.io.loops import LoopCandidate, LoopVerification
 from radarslam.slam.state import KeyFrame, MapState
+
+if TYPE_CHECKING:
+    from radarslam.slam.config import SlamConfig
 
 
 def se2_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
@@ -86,7 +90,7 @@ class Verification:
     there is: odometry inside a session, the group's placement (or its latest loop) across
     sessions of one group, none across groups."""
 
-    def __init__(self, config, state: MapState, verifiers: Verifiers):
+    def __init__(self, config: SlamConfig, state: MapState, verifiers: Verifiers) -> None:
         self.config = config
         self.state = state
         self.verifiers = verifiers
@@ -132,7 +136,9 @@ class Verification:
             return guess is not None and abs(yaw_of(guess)) > np.pi / 2
         return mode == "past"
 
-    def _register(self, verifier, query: KeyFrame, cand: KeyFrame, distance, guess, start):
+    def _register(
+        self, verifier, query: KeyFrame, cand: KeyFrame, distance: float, guess, start
+    ) -> tuple[LoopCandidate, LoopVerification]:
         state = self.state
         cand_past = self.candidate_past(guess)
         return verifier.verify_candidate(
@@ -155,7 +161,7 @@ class Verification:
         source: str,
         verifier: str | None = None,
         hint: np.ndarray | None = None,
-    ) -> tuple[LoopCandidate, object, np.ndarray | None]:
+    ) -> tuple[LoopCandidate, LoopVerification, np.ndarray | None]:
         """(record, verification, guess) of one candidate. ``verifier`` names a field of
         :class:`Verifiers` (None: ``recognition`` or ``guided``, as the guess allows); ``hint``:
         where the search starts when neither odometry nor the map predicts the pose."""
@@ -172,7 +178,9 @@ class Verification:
             record = self.near_prediction(record, guess, "the map's prediction")
         return record, ver, guess
 
-    def confirm(self, kf: KeyFrame, other: KeyFrame, guess: np.ndarray):
+    def confirm(
+        self, kf: KeyFrame, other: KeyFrame, guess: np.ndarray
+    ) -> tuple[LoopCandidate, LoopVerification]:
         """(record, verification) of a lone vote's check: ``kf`` registered against ``other``
         from the vote's prediction ``guess``."""
         cfg = self.config.loops

@@ -90,7 +90,7 @@ def test_heading_window_tries_only_headings_near_the_hint(q_yaw_deg, found):
     query, cand, true = _revisit(3, q_from_place)
     v = LoopVerifier(LoopVerifierConfig(heading_range_deg=60.0))
     every = LoopVerifier(LoopVerifierConfig(heading_range_deg=60.0, refine_top_k=10))
-    hyps = every._hypotheses(query, cand, np.eye(4))
+    hyps = every.hypotheses(query, cand, np.eye(4))
     assert sorted(h.heading_deg for h in hyps) == [-30.0, 0.0, 30.0]
     res = v.verify(query, cand, se2_to_matrix(0.0, 0.0, np.pi))
     assert (res.accepted and _pose_error(res.candidate_from_query, true)[0] < 0.15) == found
@@ -111,12 +111,12 @@ def test_grid_icp_is_open3d_icp(seed):
     grid = LoopVerifier(LoopVerifierConfig(backend="grid"))
     index = GridIndex(cand)
     for max_corr in (3.0, 1.0, 0.2):
-        ref = open3d._icp_open3d(query, cand, np.eye(4), max_corr)
+        ref = open3d.icp_open3d(query, cand, np.eye(4), max_corr)
         got = index.icp_point_to_point(query, np.eye(4), max_corr, 1e-4, 1e-4, 30)
         np.testing.assert_allclose(got[:2, [0, 1, 3]], ref[:2, [0, 1, 3]], atol=1e-9)
     # both stages, as verification runs them
     np.testing.assert_allclose(
-        grid._icp(query, cand, np.eye(4)), open3d._icp(query, cand, np.eye(4)), atol=1e-9
+        grid.icp(query, cand, np.eye(4)), open3d.icp(query, cand, np.eye(4)), atol=1e-9
     )
     # the whole verification: the same decision, pose and scores
     query, cand, true = _revisit(5, se2_to_matrix(-2.0, 3.0, np.deg2rad(178.0)))
@@ -298,7 +298,7 @@ def test_cached_maps_give_the_same_verification():
     # Bounded: the oldest keys are dropped.
     for n in range(LoopVerifier.cache_size + 5):
         cached.verify(query, cand, guess, cache_keys=(("q", n), ("c", n)))
-    assert len(cached._prepared_maps) == LoopVerifier.cache_size
+    assert cached.cached_maps == LoopVerifier.cache_size
     rejected = cached.verify(query[:0], cand[:0], guess, cache_keys=keys)
     assert not rejected.accepted and rejected.reason.startswith("too few points")
 

@@ -37,8 +37,8 @@ def test_synthetic_dataset_is_generated_once(tmp_path, monkeypatch):
         "radarslam.sim.generate.simulate", lambda *a, **k: calls.append(a) or "generated"
     )
     monkeypatch.setattr("radarslam.sim.generate.is_complete", lambda root, version: bool(calls))
-    assert commands._ensure_synthetic("demo", tmp_path / "d", False) == "v1.0-mini"
-    assert commands._ensure_synthetic("demo", tmp_path / "d", False) == "v1.0-mini"
+    assert commands.ensure_synthetic("demo", tmp_path / "d", False) == "v1.0-mini"
+    assert commands.ensure_synthetic("demo", tmp_path / "d", False) == "v1.0-mini"
     assert len(calls) == 1
 
 
@@ -124,7 +124,7 @@ def test_demo_twice_into_the_same_folder(tmp_path, monkeypatch):
         return "v1.0-mini"
 
     monkeypatch.setattr(commands, "run_slam", fake_run_slam)
-    monkeypatch.setattr(commands, "_ensure_synthetic", fake_data)
+    monkeypatch.setattr(commands, "ensure_synthetic", fake_data)
     for _ in range(2):
         result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "demo"), "--no-progress"])
         assert result.exit_code == 0, result.output
