@@ -327,21 +327,21 @@ CASES: list[tuple[str, Damage, str, str]] = [
     (
         "pr query: empty database",
         _empty_database,
-        "pr query {tmp}/empty.npz --dataroot {root} --version v1.0-mini --scene scene-0001",
+        "pr query {tmp}/empty.npz --dataroot {root} --version v1.0-mini --scenes scene-0001",
         "empty.npz: the database holds no places",
     ),
     (
         "pr query: corrupt database",
         _write("corrupt.npz", "not a database"),
-        "pr query {tmp}/corrupt.npz --dataroot {root} --version v1.0-mini --scene scene-0001",
+        "pr query {tmp}/corrupt.npz --dataroot {root} --version v1.0-mini --scenes scene-0001",
         "corrupt.npz",
     ),
     (
-        "pr build-db: --scene with --location",
+        "pr build-db: --scenes with --location",
         _nothing,
-        "pr build-db --dataroot {root} --version v1.0-mini --out {tmp}/db.npz --scene scene-0001 "
+        "pr build-db --dataroot {root} --version v1.0-mini --out {tmp}/db.npz --scenes scene-0001 "
         "--location synth-seaport",
-        "--scene 'scene-0001' and --location 'synth-seaport': give one or the other",
+        "--scenes 'scene-0001' and --location 'synth-seaport': give one or the other",
     ),
 ]
 

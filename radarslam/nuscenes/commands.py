@@ -7,6 +7,12 @@ from typing import Annotated
 
 import typer
 
+# Every command that reads a dataroot takes --version and --scenes in this one form, with this
+# default (tests/test_cli_consistency.py checks them all).
+VERSION_DEFAULT = "v1.0-mini"
+VERSION_HELP = "v1.0-mini, v1.0-trainval or v1.0-test."
+SCENES_HELP = "Comma-separated scene names (default: all)."
+
 
 def scene_names(text: str | None, option: str = "--scenes") -> list[str] | None:
     """The names of a comma-separated ``--scenes`` value; ``None`` when the option was not given.
@@ -28,9 +34,7 @@ def scene_names(text: str | None, option: str = "--scenes") -> list[str] | None:
 
 def stats(
     dataroot: Annotated[Path, typer.Argument(help="nuScenes dataroot (holds <version>/*.json).")],
-    version: Annotated[str, typer.Option(help="v1.0-mini, v1.0-trainval or v1.0-test.")] = (
-        "v1.0-mini"
-    ),
+    version: Annotated[str, typer.Option(help=VERSION_HELP)] = VERSION_DEFAULT,
     reference: Annotated[
         Path | None,
         typer.Option(help="Reference dataroot (e.g. real nuScenes) measured the same way."),
@@ -38,9 +42,7 @@ def stats(
     reference_version: Annotated[
         str | None, typer.Option(help="The reference's version (default: --version).")
     ] = None,
-    scenes: Annotated[
-        str | None, typer.Option(help="Comma-separated scene names of DATAROOT (default: all).")
-    ] = None,
+    scenes: Annotated[str | None, typer.Option(help=SCENES_HELP)] = None,
     reference_scenes: Annotated[
         str | None,
         typer.Option(help="Comma-separated scene names of the reference (default: all)."),

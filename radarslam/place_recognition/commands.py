@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from radarslam.nuscenes.commands import SCENES_HELP, VERSION_DEFAULT, VERSION_HELP
+
 pr_app = typer.Typer(
     help="AutoPlace radar place recognition: data, training, evaluation, loop-detector database.",
     no_args_is_help=True,
@@ -141,9 +143,9 @@ def eval_cmd(
 def build_db_cmd(
     dataroot: Path = typer.Option(..., help="nuScenes-layout dataroot"),
     out: Path = typer.Option(..., help="database file (.npz)"),
-    version: str = typer.Option("v1.0-trainval", help="nuScenes version"),
-    scene: list[str] | None = typer.Option(None, help="scene name (repeatable)"),
-    location: str | None = typer.Option(None, help="every scene of this location"),
+    version: str = typer.Option(VERSION_DEFAULT, help=VERSION_HELP),
+    scenes: str | None = typer.Option(None, help=SCENES_HELP),
+    location: str | None = typer.Option(None, help="Every scene of this location."),
     checkpoint: Path | None = typer.Option(None, help="checkpoint (default: shipped compact)"),
     config: Path | None = typer.Option(None, help="recognizer YAML"),
     overrides: list[str] | None = _SET,
@@ -153,28 +155,27 @@ def build_db_cmd(
 
     from radarslam.config import load_config
     from radarslam.errors import ConfigError
+    from radarslam.nuscenes.commands import scene_names
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.place_recognition.config import PlaceRecognizerConfig
     from radarslam.place_recognition.outputs import check_output_file
     from radarslam.place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
 
-    if not scene and location is None:
-        raise ConfigError("give --scene (repeatable) or --location")
-    if scene and location is not None:
-        raise ConfigError(
-            f"--scene {scene[0]!r} and --location {location!r}: give one or the other"
-        )
+    names = scene_names(scenes)
+    if names is not None and location is not None:
+        raise ConfigError(f"--scenes {scenes!r} and --location {location!r}: give one or the other")
     check_output_file(out)
     cfg = load_config(PlaceRecognizerConfig, config, overrides)
     rec = PlaceRecognizer(checkpoint=checkpoint, config=cfg)
     reader = NuScenesRadar(dataroot, version)
-    if scene:
-        scenes = list(scene)
+    if names is not None:
+        chosen = [reader.scene(n) for n in names]  # every name checked before the long part
+    elif location is not None:
+        chosen = reader.scenes_for_location(location)
     else:
-        assert location is not None  # one of the two was checked above
-        scenes = [s.name for s in reader.scenes_for_location(location)]
-    for name in tqdm(scenes, desc="build-db", unit="scene"):
-        for token, clouds in iter_scene_sequences(rec, reader, name):
+        chosen = reader.scenes()
+    for info in tqdm(chosen, desc="build-db", unit="scene"):
+        for token, clouds in iter_scene_sequences(rec, reader, info):
             rec.add(clouds, key=token)
     rec.save(out)
     typer.echo(f"{len(rec)} places -> {out}")
@@ -184,33 +185,40 @@ def build_db_cmd(
 def query_cmd(
     database: Path = typer.Argument(..., help="database from build-db"),
     dataroot: Path = typer.Option(..., help="nuScenes-layout dataroot"),
-    scene: str = typer.Option(..., help="scene whose key frames are queried"),
-    version: str = typer.Option("v1.0-trainval", help="nuScenes version"),
+    scenes: str | None = typer.Option(None, help=SCENES_HELP),
+    version: str = typer.Option(VERSION_DEFAULT, help=VERSION_HELP),
     sample_token: str | None = typer.Option(None, help="only this key frame"),
     k: int = typer.Option(5, "-k", "--top-k", help="candidates per query"),
     checkpoint: Path | None = typer.Option(None, help="checkpoint (default: the database's)"),
 ) -> None:
-    """Top-k places for key frames of a scene (the database is not modified)."""
+    """Top-k places for the key frames of the chosen scenes (the database is not modified)."""
     from radarslam.errors import ConfigError, DataError
+    from radarslam.nuscenes.commands import scene_names
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.place_recognition.recognizer import PlaceRecognizer, iter_scene_sequences
 
     if k < 1:
         raise ConfigError(f"-k {k}: must be >= 1")
+    names = scene_names(scenes)
     rec = PlaceRecognizer.load(database, checkpoint=checkpoint)
     if len(rec) == 0:
         raise DataError(f"{database}: the database holds no places; nothing to query against")
     reader = NuScenesRadar(dataroot, version)
+    chosen = [reader.scene(n) for n in names] if names is not None else reader.scenes()
     found = False
-    for token, clouds in iter_scene_sequences(rec, reader, scene):
-        if sample_token is not None and token != sample_token:
-            continue
-        found = True
-        cands = rec.query(clouds, k=k)
-        text = ", ".join(f"{c.key} (d={c.descriptor_distance:.3f}, s={c.score:.3f})" for c in cands)
-        typer.echo(f"{token}: {text}")
+    for info in chosen:
+        for token, clouds in iter_scene_sequences(rec, reader, info):
+            if sample_token is not None and token != sample_token:
+                continue
+            found = True
+            cands = rec.query(clouds, k=k)
+            text = ", ".join(
+                f"{c.key} (d={c.descriptor_distance:.3f}, s={c.score:.3f})" for c in cands
+            )
+            typer.echo(f"{token}: {text}")
     if sample_token is not None and not found:
-        raise DataError(f"sample {sample_token!r} is not a key frame of scene {scene!r}")
+        where = f"scenes {scenes!r}" if scenes is not None else str(dataroot)
+        raise DataError(f"sample {sample_token!r} is not a key frame of {where}")
 
 
 @pr_app.command("ablation")

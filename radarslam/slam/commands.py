@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from radarslam.nuscenes.commands import SCENES_HELP, VERSION_DEFAULT
+
 DEFAULT_SLAM_CONFIG = "slam/default.yaml"
 
 
@@ -158,6 +160,7 @@ def run_slam(
 
 
 def run_command(
+    ctx: typer.Context,
     out: Annotated[Path, typer.Option("--out", help="Results folder (created).")],
     dataset: Annotated[Dataset, typer.Option(help="Real nuScenes or the synthetic world.")] = (
         Dataset.nuscenes
@@ -166,9 +169,14 @@ def run_command(
         Path | None,
         typer.Option(help="nuScenes dataroot; for --dataset synthetic: where it is generated."),
     ] = None,
-    version: Annotated[str | None, typer.Option(help="Table version, e.g. v1.0-mini.")] = None,
+    version: Annotated[
+        str,
+        typer.Option(
+            help="v1.0-mini, v1.0-trainval or v1.0-test; with --dataset synthetic, the preset's."
+        ),
+    ] = VERSION_DEFAULT,
     preset: Annotated[str, typer.Option(help="Synthetic preset (tiny, demo, city).")] = "demo",
-    scenes: Annotated[str | None, typer.Option(help="Comma-separated scene names.")] = None,
+    scenes: Annotated[str | None, typer.Option(help=SCENES_HELP)] = None,
     location: Annotated[
         str | None, typer.Option(help="All scenes of one location, oldest first (multi-session).")
     ] = None,
@@ -197,12 +205,14 @@ def run_command(
     check_results_dir(out)  # before generating or reading any data
     if dataset == Dataset.synthetic:
         dataroot = dataroot or Path("data") / f"synthetic-{preset}"
-        version = version or ensure_synthetic(preset, dataroot, progress)
+        # the preset sets the version it generates; a --version given names a copy made earlier
+        if getattr(ctx.get_parameter_source("version"), "name", "DEFAULT") == "DEFAULT":
+            version = ensure_synthetic(preset, dataroot, progress)
     elif dataroot is None:
         raise DataError("--dataroot is required with --dataset nuscenes")
     run_slam(
         dataroot,
-        version or "v1.0-mini",
+        version,
         out,
         scenes,
         location,

@@ -47,11 +47,11 @@ def test_prepare_eval_builddb_query(mini_dataroot, mini_config, untrained_checkp
     rcfg = tmp_path / "rec.yaml"
     rcfg.write_text("seq_len: 2\n")
     out = invoke(["pr", "build-db", "--dataroot", str(mini_dataroot), "--version", "v1.0-mini",
-                  "--scene", "scene-0001", "--scene", "scene-0002", "--checkpoint",
+                  "--scenes", "scene-0001,scene-0002", "--checkpoint",
                   str(untrained_checkpoint), "--config", str(rcfg), "--out", str(db)])  # fmt: skip
     assert "10 places" in out
     out = invoke(["pr", "query", str(db), "--dataroot", str(mini_dataroot), "--version",
-                  "v1.0-mini", "--scene", "scene-0002", "-k", "2"])  # fmt: skip
+                  "v1.0-mini", "--scenes", "scene-0002", "-k", "2"])  # fmt: skip
     lines = [ln for ln in out.splitlines() if ln.strip()]
     assert len(lines) == 6 and all("(d=" in ln for ln in lines)
     # a frame queried against a database that holds it finds itself
@@ -81,7 +81,7 @@ def test_cli_checks_outputs_and_options_up_front(tmp_path):
     afile = tmp_path / "afile"
     afile.write_text("x")
     nothing = str(tmp_path / "no_such_cache")
-    build = ["pr", "build-db", "--dataroot", nothing, "--scene", "scene-0001", "--out"]
+    build = ["pr", "build-db", "--dataroot", nothing, "--scenes", "scene-0001", "--out"]
     _raises(ConfigError, "output file is an existing directory", [*build, str(tmp_path)])
     _raises(ConfigError, "afile: output directory is an existing file",
             [*build, str(afile / "db.npz")])  # fmt: skip
@@ -97,7 +97,7 @@ def test_cli_checks_outputs_and_options_up_front(tmp_path):
         _raises(ConfigError, f"--split '{split}': choose one of val, test",
                 ["pr", "eval", nothing, "--baseline", "m2dp", "--split", split])  # fmt: skip
     _raises(ConfigError, "-k 0: must be >= 1",
-            ["pr", "query", str(tmp_path / "none.npz"), "--dataroot", nothing, "--scene", "s",
+            ["pr", "query", str(tmp_path / "none.npz"), "--dataroot", nothing, "--scenes", "s",
              "-k", "0"])  # fmt: skip
     # a previous run's checkpoints are neither mixed with a new run's nor silently replaced
     run = tmp_path / "run"
