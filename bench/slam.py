@@ -4,7 +4,7 @@
                                           # into 2 scenes of 90 s (3.5 km), in data/bench-city-long
     python bench/slam.py --run subset     # the city subset: 8 logs on 2 routes, 32 scenes of 20 s
                                           # (2.5 km), in data/bench-city
-    python bench/slam.py --dataroot D --version v1.0-trainval   # any dataroot (first location)
+    python bench/slam.py --dataroot D --version v1.0-trainval --preset default   # real data
 
 The long scenes are the headline: 20 s scenes leave odometry almost nothing to correct, so the
 SLAM / odometry ATE ratio means little on the subset.
@@ -167,12 +167,17 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--preset",
+        default="synthetic",
+        choices=("synthetic", "default"),
+        help="SLAM preset, radarslam/configs/slam/<preset>.yaml (synthetic: the synthetic world's)",
+    )
+    ap.add_argument(
         "--set",
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override a key of radarslam/configs/slam/default.yaml (dotted, e.g. "
-        "key_frames.min_travel_m=0)",
+        help="override a key of the SLAM preset (dotted, e.g. key_frames.min_travel_m=0)",
     )
     ap.add_argument(
         "--isam2-nodes",
@@ -206,7 +211,7 @@ def main() -> None:
     scenes = [s.name for s in reader.scenes_for_location(reader.locations()[0])]
     scenes = scenes[: args.max_scenes] if args.max_scenes else scenes
     days = sorted({s.date_captured for s in reader.scenes() if s.name in scenes})
-    config = load_config(SlamConfig, CONFIG_DIR / "slam" / "default.yaml", args.set)
+    config = load_config(SlamConfig, CONFIG_DIR / "slam" / f"{args.preset}.yaml", args.set)
 
     odo = odometry_baseline(reader, scenes, config)
     t0, c0 = time.perf_counter(), cpu_s()

@@ -10,19 +10,30 @@ import typer
 
 from radarslam.nuscenes.commands import SCENES_HELP, VERSION_DEFAULT
 
-DEFAULT_SLAM_CONFIG = "slam/default.yaml"
-
 
 class Dataset(str, Enum):
     nuscenes = "nuscenes"
     synthetic = "synthetic"
 
 
-def _slam_config(config: Path | None, overrides: list[str] | None, no_loops: bool, checkpoint):
+#: Named SLAM presets, radarslam/configs/slam/<name>.yaml: real radar, the synthetic world.
+SLAM_PRESETS = ("default", "synthetic")
+
+
+def _slam_config(
+    config: Path | None,
+    overrides: list[str] | None,
+    no_loops: bool,
+    checkpoint,
+    preset: str = "default",
+):
+    """The SLAM config: ``config`` (a YAML path, or a preset name), else the ``preset``."""
     from radarslam.config import CONFIG_DIR, load_config
     from radarslam.slam.config import SlamConfig
 
-    path = config if config is not None else CONFIG_DIR / DEFAULT_SLAM_CONFIG
+    if config is not None and str(config) in SLAM_PRESETS and not config.exists():
+        preset, config = str(config), None
+    path = config if config is not None else CONFIG_DIR / "slam" / f"{preset}.yaml"
     overrides = list(overrides or [])
     if no_loops:
         overrides.append("loops.enabled=false")
@@ -184,7 +195,11 @@ def run_command(
         int | None, typer.Option(min=1, help="Use only the first N scenes.")
     ] = None,
     config: Annotated[
-        Path | None, typer.Option(help="SLAM YAML (default: radarslam/configs/slam/default.yaml).")
+        Path | None,
+        typer.Option(
+            help="SLAM YAML, or a preset: default (real radar) or synthetic; default: synthetic "
+            "with --dataset synthetic, default otherwise (radarslam/configs/slam/)."
+        ),
     ] = None,
     override: Annotated[
         list[str] | None, typer.Option("--set", help="Config override key.sub=value (repeatable).")
@@ -200,7 +215,13 @@ def run_command(
     from radarslam.errors import DataError
     from radarslam.slam.outputs import check_results_dir
 
-    cfg = _slam_config(config, override, no_loops, checkpoint)
+    cfg = _slam_config(
+        config,
+        override,
+        no_loops,
+        checkpoint,
+        preset="synthetic" if dataset == Dataset.synthetic else "default",
+    )
     _check_selection(scenes, location)
     check_results_dir(out)  # before generating or reading any data
     if dataset == Dataset.synthetic:
@@ -249,7 +270,7 @@ def demo_command(
     from radarslam.slam.outputs import check_results_dir
 
     dataroot = out / "data"
-    cfg = _slam_config(None, override, False, None)
+    cfg = _slam_config(None, override, False, None, preset="synthetic")
     results = out / "results"
     check_results_dir(results)  # before generating the data
     version = ensure_synthetic(preset, dataroot, progress)

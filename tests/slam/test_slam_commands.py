@@ -131,3 +131,23 @@ def test_demo_twice_into_the_same_folder(tmp_path, monkeypatch):
     assert runs == [tmp_path / "demo" / "results"] * 2
     assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == ["data", "results"]
     assert (tmp_path / "demo" / "data" / "table.json").is_file()
+
+
+def test_run_takes_the_preset_of_its_data(tiny_dataroot, tmp_path):
+    """A nuScenes dataroot runs with slam/default.yaml (the odometry's mounting-yaw states on),
+    --config synthetic with the synthetic world's preset (off), as `run --dataset synthetic`
+    and `demo` do; the resolved config is written beside the results."""
+    import yaml
+
+    def run(out, *extra):
+        result = CliRunner().invoke(
+            app,
+            ["run", "--dataroot", str(tiny_dataroot), "--version", "v1.0-mini", "--out", str(out),
+             "--no-loops", "--no-progress", "--no-evaluate", "--max-scenes", "1", *extra],
+        )  # fmt: skip
+        assert result.exit_code == 0, result.output
+        cfg = yaml.safe_load((out / "config.yaml").read_text())
+        return cfg["odometry"]["fusion"]["calibration"]["yaw_bias_model"]
+
+    assert run(tmp_path / "a") == "mounting"
+    assert run(tmp_path / "b", "--config", "synthetic") == "none"
