@@ -10,6 +10,7 @@ key-frame work (recognition, registration, iSAM2) overlap, with identical result
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import time
@@ -22,6 +23,8 @@ import numpy as np
 
 from radarslam.errors import DataError
 from radarslam.types import AccumulatedCloud, SceneInfo
+
+log = logging.getLogger("radarslam.odometry")
 
 # --- messages ------------------------------------------------------------------------------------
 
@@ -153,6 +156,7 @@ class OdometryFeed:
     ) -> Iterator[FeedMessage]:
         """The messages of every scene in order. ``frames(info)`` gives a scene's frames (None:
         read them here)."""
+        from radarslam.odometry.run import DopplerHealth
         from radarslam.slam.keyframes import SweepBuffer
 
         own_reading = frames is None
@@ -176,6 +180,7 @@ class OdometryFeed:
                 point_mask=self.point_mask() if not use_odometry_mask else None,
             )
             span = None
+            health = DopplerHealth(self.odometry.config.doppler.min_points)
             pending = 0  # frames not yet reported to the progress bar
             t_data = time.perf_counter()
             for frame in read(info):
@@ -183,6 +188,7 @@ class OdometryFeed:
                 if own_reading:  # else the reading process reports its own time
                     timings.data_s += t0 - t_data
                 res = self.odometry.process(frame)
+                health.add(res.doppler)
                 t1 = time.perf_counter()
                 timings.odometry_s += t1 - t0
                 timings.frames += 1
@@ -204,6 +210,9 @@ class OdometryFeed:
                 t_data = time.perf_counter()
             if pending:
                 yield FramesRead(pending)
+            why = health.problem()
+            if why is not None:
+                log.warning("scene %s: %s: its odometry is unreliable", info.name, why)
             if span is not None:
                 yield SessionSpan(span[0], span[1])
 

@@ -59,3 +59,20 @@ def test_doppler_health_thresholds():
         h.add(_Fit(False, 0, 50))
     assert h.problem().startswith("only 10 of 21 frames have a valid Doppler fit")
     assert DopplerHealth().problem() is None  # no frame with points: nothing to say
+
+
+def test_slam_run_says_it_too(tiny_dataroot, tmp_path):
+    """``radarslam run`` (its odometry runs in a forked process) warns the same way."""
+    import subprocess
+    import sys
+
+    bad = _garbage_doppler(tiny_dataroot, tmp_path / "garbage")
+    proc = subprocess.run(
+        [sys.executable, "-m", "radarslam.cli", "run", "--dataroot", str(bad), "--version",
+         "v1.0-mini", "--out", str(tmp_path / "res"), "--no-loops", "--no-progress",
+         "--no-evaluate"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if "static-world inliers" in ln]
+    assert len(lines) == 2 and all("unreliable" in ln for ln in lines), proc.stderr
