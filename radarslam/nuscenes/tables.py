@@ -14,6 +14,10 @@ The compact radar index can be cached on disk (``~/.cache/radarslam/nuscenes`` b
 table file it was built from, so later start-ups on ``v1.0-trainval`` take a fraction of a second.
 Nothing is ever written inside the dataroot.
 
+The streaming parser lives in :mod:`radarslam.nuscenes.json_stream`, the compact records in
+:mod:`radarslam.nuscenes.records` and the per-scene and quaternion checks in
+:mod:`radarslam.nuscenes.table_checks`; this module builds :class:`NuScenesTables` from them.
+
 What the streaming parser does not check: the content of skipped (non-radar) records beyond their
 braces. Whatever is kept is fully decoded and validated; the list structure (``[``, records
 separated by single commas, ``]``) is checked for the whole file.
@@ -22,13 +26,9 @@ separated by single commas, ``]``) is checked for the whole file.
 from __future__ import annotations
 
 import hashlib
-import itertools
-import json
 import logging
 import os
-import re
-from collections.abc import Iterator
-from dataclasses import dataclass, field, fields
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,20 @@ import numpy as np
 
 from radarslam.errors import DataError
 from radarslam.geometry import make_transform, quat_norm_problem, quat_norms, quat_norms_ok
+from radarslam.nuscenes.json_stream import (
+    _TOKEN_RE,
+    _field,
+    _find_record,
+    _floats,
+    _iter_chunks,
+    _load_json_list,
+    _loads_many,
+    _number_block,
+    _radar_batches,
+    _text_array,
+)
+from radarslam.nuscenes.records import RadarIndex, SmallTables, TokenIndex, _bytes_array
+from radarslam.nuscenes.table_checks import _scene_sample_problems, _warn_non_unit
 from radarslam.types import RADAR_CHANNELS
 
 log = logging.getLogger("radarslam.nuscenes")
@@ -51,358 +65,6 @@ TABLE_NAMES: tuple[str, ...] = (
     "log",
 )
 _CACHE_FORMAT = 1
-_CHUNK_BYTES = 8 << 20  # streaming window: bounds the transient memory
-_SEP_RE = re.compile(rb"\}\s*,\s*\{")
-# the filename of a radar sample_data names its channel folder ("samples/RADAR_FRONT/...")
-_RADAR_FILENAME_RE = re.compile(rb'"filename"\s*:\s*"[^"]*RADAR_')
-_TOKEN_RE = re.compile(rb'"token"\s*:\s*"([^"]*)"')
-_WS = b" \t\r\n"
-
-
-# --------------------------------------------------------------------------------------------
-# token lookup
-# --------------------------------------------------------------------------------------------
-class TokenIndex:
-    """token -> row lookup over a fixed-width bytes array, through a sorted copy (no dict)."""
-
-    def __init__(self, tokens: np.ndarray, what: str = "token"):
-        self.tokens = tokens
-        self.order = np.argsort(tokens, kind="stable")
-        self._sorted = tokens[self.order]
-        self.what = what
-        if len(tokens) > 1:
-            dup = self._sorted[1:] == self._sorted[:-1]
-            if dup.any():
-                first = self._sorted[1:][dup][0].decode()
-                raise DataError(f"{what}: token {first!r} appears more than once")
-
-    def __len__(self) -> int:
-        return len(self.tokens)
-
-    def find_many(self, queries: np.ndarray) -> np.ndarray:
-        """Row of each query, -1 where absent (queries: bytes array)."""
-        queries = np.asarray(queries)
-        if len(self._sorted) == 0 or len(queries) == 0:
-            return np.full(len(queries), -1, dtype=np.int64)
-        if queries.dtype.kind != "S":
-            queries = queries.astype(self._sorted.dtype)
-        pos = np.searchsorted(self._sorted, queries)
-        pos_c = np.minimum(pos, len(self._sorted) - 1)
-        hit = self._sorted[pos_c] == queries
-        return np.where(hit, self.order[pos_c], -1)
-
-    def find(self, token: str) -> int:
-        try:
-            q = np.array([token.encode("ascii")])
-        except UnicodeEncodeError:
-            return -1
-        if q.dtype.itemsize > self._sorted.dtype.itemsize:
-            return -1  # longer than any stored token: cannot be one of them
-        return int(self.find_many(q)[0])
-
-
-def _bytes_array(values: list[bytes]) -> np.ndarray:
-    if not values:
-        return np.zeros(0, dtype="S1")
-    return np.array(values, dtype=bytes)
-
-
-# --------------------------------------------------------------------------------------------
-# compact records
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class RadarIndex:
-    """All radar ``sample_data`` records of a version, one row each, plus their ego poses."""
-
-    token: np.ndarray  # S, sample_data token
-    sample: np.ndarray  # int32 row in SmallTables.sample_*
-    calibrated_sensor: np.ndarray  # int32 row in SmallTables.cs_*
-    channel: np.ndarray  # int8 index into RADAR_CHANNELS
-    timestamp_us: np.ndarray  # int64
-    is_key_frame: np.ndarray  # bool
-    filename: np.ndarray  # S, relative to the dataroot
-    prev: np.ndarray  # int32 row, -1 at the start of a chain
-    next: np.ndarray  # int32 row, -1 at the end of a chain
-    ego_translation: np.ndarray  # (N, 3) float64
-    ego_rotation: np.ndarray  # (N, 4) float64, w x y z
-
-    def __len__(self) -> int:
-        return len(self.token)
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
-
-    @property
-    def nbytes(self) -> int:
-        return sum(a.nbytes for a in self.arrays().values())
-
-
-@dataclass(frozen=True, eq=False)
-class SmallTables:
-    """scene, sample, log, sensor and calibrated_sensor, in plain Python / numpy form."""
-
-    scenes: list[dict]  # scene.json records (as read)
-    logs: dict[str, dict]  # log token -> record
-    sample_token: np.ndarray  # S
-    sample_timestamp_us: np.ndarray  # int64
-    sample_scene: np.ndarray  # int32 row in scenes
-    sample_next: np.ndarray  # int32 row, -1 at the end
-    sample_row: dict[str, int]  # sample token -> row
-    cs_token: list[str]
-    cs_row: dict[str, int]
-    cs_channel: np.ndarray  # int8 RADAR_CHANNELS index, -1 for non-radar sensors
-    cs_translation: np.ndarray  # (M, 3)
-    cs_rotation: np.ndarray  # (M, 4)
-    scene_row: dict[str, int]  # scene name -> row
-    #: scene row -> one-line reason, for scenes that cannot be read (see check_scene)
-    scene_problems: dict[int, str] = field(default_factory=dict)
-
-
-# --------------------------------------------------------------------------------------------
-# JSON helpers
-# --------------------------------------------------------------------------------------------
-def _load_json_list(path: Path) -> list:
-    try:
-        with path.open("rb") as fh:
-            data = json.load(fh)
-    except FileNotFoundError:
-        raise DataError(f"{path}: table file is missing") from None
-    except json.JSONDecodeError as exc:
-        raise DataError(
-            f"{path}: corrupt JSON (line {exc.lineno} column {exc.colno}: {exc.msg})"
-        ) from None
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: corrupt JSON (not UTF-8 text)") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read table ({exc.strerror})") from None
-    if not isinstance(data, list):
-        raise DataError(f"{path}: expected a JSON list of records, got {type(data).__name__}")
-    for i, rec in enumerate(data):
-        if not isinstance(rec, dict):
-            raise DataError(f"{path}: record {i} is {type(rec).__name__}, expected an object")
-    return data
-
-
-def _field(path: Path, rec: dict, key: str, i: int | None = None):
-    try:
-        return rec[key]
-    except KeyError:
-        where = f"record {rec.get('token', i)!r}"
-        raise DataError(f"{path}: {where} has no {key!r} field") from None
-
-
-def _floats(path: Path, rec: dict, key: str, n: int) -> list[float]:
-    value = _field(path, rec, key)
-    if (
-        not isinstance(value, list)
-        or len(value) != n
-        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-    ):
-        raise DataError(
-            f"{path}: record {rec.get('token')!r} field {key!r} is {value!r}, expected {n} numbers"
-        )
-    return value
-
-
-def _iter_chunks(path: Path) -> Iterator[tuple[bytes, int]]:
-    """Yield (body, byte offset) pieces of a JSON list of flat ``{...}`` records, streaming.
-
-    Each body holds whole records and their separators. The list structure (``[``, records
-    separated by exactly one comma, ``]``) is checked in bulk with C-speed regex/bytes operations;
-    nothing is decoded: callers pick the records worth :func:`json.loads`.
-    """
-    try:
-        fh = path.open("rb")
-    except FileNotFoundError:
-        raise DataError(f"{path}: table file is missing") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read table ({exc.strerror})") from None
-    with fh:
-        carry = b""
-        base = 0  # file offset of carry[0]
-        started = False
-        while True:
-            chunk = fh.read(_CHUNK_BYTES)
-            if not chunk:
-                break
-            buf = carry + chunk if carry else chunk
-            last = buf.rfind(b"}")
-            if last < 0:
-                carry = buf
-                continue
-            body = buf[: last + 1]
-            _check_structure(path, body, base, started)
-            started = True
-            yield body, base
-            carry = buf[last + 1 :]
-            base += last + 1
-        tail = carry.translate(None, _WS)
-        if tail != (b"]" if started else b"[]"):
-            what = (
-                "truncated" if not tail.endswith(b"]") else f"unexpected {tail[:20]!r} at the end"
-            )
-            raise DataError(f"{path}: corrupt JSON ({what}, after byte {base})")
-
-
-def _check_structure(path: Path, body: bytes, base: int, started: bool) -> None:
-    """A list of flat records: '[' (or ',' after a previous chunk), then records separated by
-    exactly one comma. Done with C-speed counts, no per-record Python work."""
-    n = body.count(b"{")
-    if n == 0 or body.count(b"}") != n:
-        raise DataError(
-            f"{path}: corrupt JSON (unbalanced braces between bytes {base} and {base + len(body)})"
-        )
-    head = body[: body.find(b"{")].translate(None, _WS)
-    if head != (b"," if started else b"["):
-        what = "expected '[' at the start of the list" if not started else f"unexpected {head!r}"
-        raise DataError(f"{path}: corrupt JSON ({what}, near byte {base})")
-    seps = len(_SEP_RE.findall(body))
-    if seps != n - 1:
-        raise DataError(
-            f"{path}: corrupt JSON (records between bytes {base} and {base + len(body)} are not "
-            f"flat objects separated by single commas)"
-        )
-
-
-def _radar_batches(path: Path) -> Iterator[list[tuple[bytes, int]]]:
-    """Per chunk, the (raw bytes, offset) of the records whose filename names a radar channel.
-    The search runs in C over the other records (cameras, lidar), which are never decoded."""
-    for body, base in _iter_chunks(path):
-        pieces = []
-        for m in _RADAR_FILENAME_RE.finditer(body):
-            start = body.rfind(b"{", 0, m.start())
-            end = body.find(b"}", m.end()) + 1
-            pieces.append((body[start:end], base + start))
-        if pieces:
-            yield pieces
-
-
-def _loads_many(path: Path, pieces: list[tuple[bytes, int]]) -> list[dict]:
-    """Decode many records in one C call; on failure, find the bad one for the message."""
-    try:
-        return json.loads(b"[" + b",".join(raw for raw, _ in pieces) + b"]")
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        for raw, offset in pieces:
-            _loads(path, raw, offset)
-        raise DataError(f"{path}: corrupt JSON") from None
-
-
-def _text_array(path: Path, values: list, what: str, utf8: bool = False) -> np.ndarray:
-    if not set(map(type, values)) <= {str}:
-        bad = next(v for v in values if type(v) is not str)
-        raise DataError(f"{path}: a radar record has {what} {bad!r}, expected a string")
-    if not values:
-        return np.zeros(0, dtype="S1")
-    if utf8:
-        return np.array([v.encode("utf-8") for v in values], dtype=bytes)
-    try:
-        return np.array(values, dtype=bytes)  # ASCII tokens
-    except UnicodeEncodeError:
-        raise DataError(f"{path}: a radar record has a non-ASCII {what}") from None
-
-
-def _number_block(
-    path: Path, recs: list[dict], key: str, n: int, check_types: bool = False
-) -> np.ndarray:
-    """(len(recs), n) float array of one list-valued field, validated in bulk.
-
-    The dtype numpy infers rejects strings ("1" would convert under dtype=float64), nulls and
-    nested lists in C; booleans mix into a float array unnoticed, so ``check_types`` (set when the
-    JSON text holds ``true``/``false`` at all) checks each element's type as well."""
-    try:
-        values = [r[key] for r in recs]
-        arr = np.array(values)  # numbers only -> int64/float64; a string -> <U, null -> object
-        if (
-            arr.shape == (len(recs), n)
-            and arr.dtype.kind in "fi"
-            and set(map(type, values)) <= {list}
-            and (
-                not check_types
-                or set(map(type, itertools.chain.from_iterable(values))) <= {int, float}
-            )
-        ):
-            return arr.astype(np.float64, copy=False)
-    except (KeyError, TypeError, ValueError, OverflowError):
-        pass
-    for r in recs:  # slow path: name the bad record
-        _floats(path, r, key, n)
-    raise DataError(f"{path}: field {key!r} is malformed")
-
-
-def _loads(path: Path, raw: bytes, offset: int) -> dict:
-    try:
-        return json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path}: corrupt JSON in the record at byte {offset} ({exc})") from None
-
-
-def _find_record(path: Path, token: bytes) -> dict | None:
-    """The record of ``token`` in a streamed table, or None (slow: for error messages only)."""
-    pattern = re.compile(rb'"token"\s*:\s*"' + re.escape(token) + rb'"')
-    for body, base in _iter_chunks(path):
-        m = pattern.search(body)
-        if m:
-            start = body.rfind(b"{", 0, m.start())
-            end = body.find(b"}", m.end()) + 1
-            return _loads(path, body[start:end], base + start)
-    return None
-
-
-def _scene_sample_problems(
-    p_scene: Path, p_sample: Path, scenes: list[dict], sample_row: dict, s_scene: np.ndarray
-) -> dict[int, str]:
-    """Scene row -> why it cannot be read (no samples, or a first/last sample token that is not
-    its own), for the scenes that have such a problem. Kept per scene: a broken scene must not
-    stop runs on the others, only a run that asks for it."""
-    count = np.bincount(s_scene, minlength=len(scenes))
-    out: dict[int, str] = {}
-
-    def row_of(tok) -> int | None:
-        return sample_row.get(tok) if isinstance(tok, str) else None
-
-    for row, rec in enumerate(scenes):
-        name = rec["name"]
-        problems = []
-        for key in ("first_sample_token", "last_sample_token"):
-            tok = rec[key]
-            j = row_of(tok)
-            if tok == "":
-                problems.append(f"{key} is empty")
-            elif j is None:
-                problems.append(f"{key} {tok!r} is not in {p_sample.name}")
-            elif s_scene[j] != row:
-                other = scenes[s_scene[j]]["name"]
-                problems.append(f"{key} {tok!r} belongs to scene {other!r}")
-        if count[row] == 0:
-            why = f" ({problems[0]})" if problems else ""
-            out[row] = (
-                f"{p_scene}: scene {name!r} has no samples: no record of {p_sample.name} has "
-                f"scene_token {rec['token']!r}{why}"
-            )
-        elif problems:
-            out[row] = f"{p_scene}: scene {name!r} {problems[0]}"
-    return out
-
-
-def _warn_non_unit(
-    path: Path, what: str, tokens, quats: np.ndarray, norms: np.ndarray | None = None
-) -> None:
-    """One warning per table when rotation quaternions are not unit (they are normalised)."""
-    if norms is None:
-        norms = quat_norms(quats)
-    off = np.abs(norms - 1.0) > 1e-3
-    if off.any():
-        i = int(np.flatnonzero(off)[0])
-        tok = tokens[i].decode() if isinstance(tokens[i], bytes) else tokens[i]
-        log.warning(
-            "%s: %d %s(s) have a rotation quaternion whose norm is not 1 (first: %r, norm %.6g); "
-            "they are normalised",
-            path,
-            int(off.sum()),
-            what,
-            tok,
-            float(norms[i]),
-        )
 
 
 # --------------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ import pytest
 from mini_dataroot import VERSION, tok
 
 from radarslam.errors import DataError
-from radarslam.nuscenes import tables as tables_mod
+from radarslam.nuscenes import json_stream
 from radarslam.nuscenes.tables import NuScenesTables, TokenIndex
 from radarslam.types import RADAR_CHANNELS
 
@@ -45,7 +45,7 @@ def test_streaming_parser_is_chunk_and_whitespace_independent(mini, clone, monke
         recs = json.loads(p.read_text())
         text = json.dumps(recs, separators=(",", ":")) if compact else json.dumps(recs, indent=4)
         p.write_text(text)
-    monkeypatch.setattr(tables_mod, "_CHUNK_BYTES", 97)  # records straddle every chunk boundary
+    monkeypatch.setattr(json_stream, "_CHUNK_BYTES", 97)  # records straddle every chunk boundary
     got = NuScenesTables(root, VERSION, use_cache=False).radar
     for name, arr in ref.arrays().items():
         np.testing.assert_array_equal(getattr(got, name), arr, err_msg=name)
