@@ -11,6 +11,9 @@ with no point left is returned as a :class:`RadarSweep` with 0 points. All are c
 ``reader.skip_counts`` and logged once per scene (logger ``radarslam.nuscenes``). The exception:
 :meth:`NuScenesRadar.iter_frames` raises :class:`DataError` at the end of a scene whose every
 sweep it read was empty (a scene without a single radar point is broken data, not a gap).
+
+The point checks and :func:`stack_in_reference` are in :mod:`.sweeps`, the frame grouping rule in
+:mod:`.frames` and the argument checks in :mod:`.arguments`.
 """
 
 from __future__ import annotations
@@ -18,18 +21,31 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert
+from radarslam.nuscenes.arguments import (
+    _channel_index,
+    _channel_list,
+    _check_filters,
+    _check_sync_tolerance,
+    _is_real,
+)
 from radarslam.nuscenes.filters import RadarPointFilter
+from radarslam.nuscenes.frames import NOMINAL_PERIOD_US, group_rows
 from radarslam.nuscenes.pcd import read_pcd
+from radarslam.nuscenes.sweeps import (
+    _FLOAT_FIELDS,
+    _SKIP_KEYS,
+    MAX_POINT_COORDINATE_M,
+    SkipCounts,
+    stack_in_reference,
+)
 from radarslam.nuscenes.tables import NuScenesTables
 from radarslam.types import (
-    ACCUMULATED_DTYPE,
     RADAR_CHANNELS,
     AccumulatedCloud,
     RadarFrame,
@@ -37,114 +53,16 @@ from radarslam.types import (
     SceneInfo,
 )
 
+# names callers import from here
+__all__ = [
+    "MAX_POINT_COORDINATE_M",
+    "NOMINAL_PERIOD_US",
+    "NuScenesRadar",
+    "SkipCounts",
+    "stack_in_reference",
+]
+
 log = logging.getLogger("radarslam.nuscenes")
-
-_FLOAT_FIELDS = ("x", "y", "z", "rcs", "vx", "vy", "vx_comp", "vy_comp")
-#: Nominal ARS408 sweep period (13 Hz), used when a scene has too few sweeps to measure it.
-NOMINAL_PERIOD_US = 76_923
-#: Largest |x|, |y| or |z| of a point in its sensor frame that is kept: four times the ARS408's
-#: ~250 m far range.
-MAX_POINT_COORDINATE_M = 1000.0
-
-
-@dataclass
-class SkipCounts:
-    """What the reader skipped instead of failing (totals, and per scene name), each sweep counted
-    once however often it is read."""
-
-    nan_points: int = 0  # points dropped because a float field was NaN/inf
-    empty_sweeps: int = 0  # sweeps with no point left (yielded with 0 points)
-    far_points: int = 0  # finite points beyond MAX_POINT_COORDINATE_M, dropped
-    per_scene: dict[str, dict[str, int]] = field(default_factory=dict)
-
-    def add(self, scene: str, nan_points: int, empty: bool, far_points: int = 0) -> None:
-        if not nan_points and not empty and not far_points:
-            return
-        self.nan_points += nan_points
-        self.empty_sweeps += int(empty)
-        self.far_points += far_points
-        d = self.per_scene.setdefault(scene, dict.fromkeys(_SKIP_KEYS, 0))
-        d["nan_points"] += nan_points
-        d["empty_sweeps"] += int(empty)
-        d["far_points"] += far_points
-
-
-_SKIP_KEYS = ("nan_points", "empty_sweeps", "far_points")
-
-
-def _channel_index(channel: str) -> int:
-    try:
-        return RADAR_CHANNELS.index(channel)
-    except ValueError:
-        raise DataError(
-            f"unknown radar channel {channel!r}; expected one of {RADAR_CHANNELS}"
-        ) from None
-
-
-def _check_filters(filters) -> None:
-    if filters is not None and not isinstance(filters, RadarPointFilter):
-        raise ConfigError(
-            f"filters must be a RadarPointFilter or None, got {type(filters).__name__} {filters!r}"
-        )
-
-
-def _is_real(x) -> bool:
-    return not isinstance(x, bool) and isinstance(x, (int, float, np.integer, np.floating))
-
-
-def _check_sync_tolerance(sync_tolerance_us) -> None:
-    if sync_tolerance_us is None:
-        return
-    if not _is_real(sync_tolerance_us) or not np.isfinite(sync_tolerance_us):
-        raise ConfigError(
-            f"sync_tolerance_us must be a finite number of microseconds > 0 or None, got "
-            f"{sync_tolerance_us!r}"
-        )
-    if sync_tolerance_us <= 0:
-        raise ConfigError(f"sync_tolerance_us must be > 0, got {sync_tolerance_us!r}")
-
-
-def _channel_list(channels) -> list[str]:
-    """``channels`` as a list: one channel name given as a bare string is one channel."""
-    if isinstance(channels, str):
-        return [channels]
-    try:
-        return list(channels)
-    except TypeError:
-        raise ConfigError(
-            f"channels must be a radar channel name or a list of them, got {channels!r}"
-        ) from None
-
-
-def stack_in_reference(
-    parts: Sequence[tuple[np.ndarray, np.ndarray, int, int, float]],
-) -> np.ndarray:
-    """The radar points (:data:`RADAR_DTYPE`) of every ``(points, ref_from_sensor,
-    channel_index, sweep_index, time_lag_s)`` as :data:`ACCUMULATED_DTYPE` in the reference frame,
-    concatenated: positions transformed, velocity vectors (vx, vy, 0) rotated with them in 3-D
-    (the devkit leaves velocities in each sweep's sensor frame). One vectorised pass over all the
-    sweeps of a cloud (35 per key frame) instead of a dozen numpy calls per sweep."""
-    parts = [p for p in parts if len(p[0])]
-    if not parts:
-        return np.zeros(0, dtype=ACCUMULATED_DTYPE)
-    counts = np.array([len(p[0]) for p in parts])
-    pts = np.concatenate([p[0] for p in parts]) if len(parts) > 1 else parts[0][0]
-    transforms = np.stack([np.asarray(p[1], dtype=np.float64) for p in parts])
-    rot = np.repeat(transforms[:, :3, :3], counts, axis=0)  # (N, 3, 3), one per point
-    out = np.zeros(len(pts), dtype=ACCUMULATED_DTYPE)
-    xyz = np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(np.float64)
-    xyz = np.einsum("nij,nj->ni", rot, xyz) + np.repeat(transforms[:, :3, 3], counts, axis=0)
-    out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    for a, b in (("vx", "vy"), ("vx_comp", "vy_comp")):
-        v = np.column_stack([pts[a], pts[b]]).astype(np.float64)  # (vx, vy, 0)
-        v = np.einsum("nij,nj->ni", rot[:, :2, :2], v)
-        out[a], out[b] = v[:, 0], v[:, 1]
-    out["rcs"] = pts["rcs"]
-    out["dyn_prop"] = pts["dyn_prop"]
-    out["channel"] = np.repeat([p[2] for p in parts], counts)
-    out["sweep"] = np.repeat([p[3] for p in parts], counts)
-    out["time_lag_s"] = np.repeat([p[4] for p in parts], counts)
-    return out
 
 
 class NuScenesRadar:
@@ -478,61 +396,11 @@ class NuScenesRadar:
     def _group_rows(
         self, info: SceneInfo, ref_channel: str, sync_tolerance_us: int | None
     ) -> list[list[tuple[int, int]]]:
-        radar = self.tables.radar
         ref = _channel_index(ref_channel)
         priority = [ref] + [c for c in range(len(RADAR_CHANNELS)) if c != ref]
         scene_row = self.tables.small.scene_row[info.name]
         rows = {c: self._scene_channel_rows(scene_row, c) for c in priority}
-        times = {c: radar.timestamp_us[rows[c]] for c in priority}
-        diffs = np.concatenate([np.diff(t) for t in times.values() if len(t) > 1] or [np.zeros(0)])
-        period = float(np.median(diffs)) if len(diffs) >= 3 else float(NOMINAL_PERIOD_US)
-        tol = period / 2 if sync_tolerance_us is None else float(sync_tolerance_us)
-
-        # 1. anchors: the reference channel's sweeps, then other channels' sweeps that fall in a
-        #    gap of all anchors so far (farther than 3/4 of a period from every anchor).
-        anchor_t = np.zeros(0, dtype=np.int64)
-        anchors: list[tuple[int, int]] = []  # (channel, row)
-        is_anchor = {c: np.zeros(len(rows[c]), dtype=bool) for c in priority}
-        for c in priority:
-            t = times[c]
-            if len(t) == 0:
-                continue
-            if c == ref or len(anchor_t) == 0:
-                new = np.ones(len(t), dtype=bool)
-            else:
-                pos = np.searchsorted(anchor_t, t)
-                left = np.abs(t - anchor_t[np.maximum(pos - 1, 0)])
-                right = np.abs(anchor_t[np.minimum(pos, len(anchor_t) - 1)] - t)
-                new = np.minimum(left, right) > 0.75 * period
-            is_anchor[c] = new
-            anchors += [(c, int(r)) for r in rows[c][new]]
-            anchor_t = np.sort(np.concatenate([anchor_t, t[new]]))
-        anchors.sort(key=lambda cr: int(radar.timestamp_us[cr[1]]))
-        a_time = np.array([radar.timestamp_us[r] for _, r in anchors], dtype=np.int64)
-        groups: list[list[tuple[int, int]]] = [[a] for a in anchors]
-        taken = {a: {c} for a, (c, _) in enumerate(anchors)}
-
-        # 2. every other channel: nearest sweep within tol, one-to-one, closest pairs first.
-        for c in priority:
-            t = times[c]
-            free = np.flatnonzero(~is_anchor[c])
-            if len(free) == 0 or len(a_time) == 0:
-                continue
-            pairs = []
-            for k in free:
-                lo = np.searchsorted(a_time, t[k] - tol, "left")
-                hi = np.searchsorted(a_time, t[k] + tol, "right")
-                for a in range(lo, hi):
-                    pairs.append((abs(int(a_time[a] - t[k])), a, int(k)))
-            pairs.sort()
-            used = set()
-            for _, a, i in pairs:
-                if i in used or c in taken[a]:
-                    continue
-                used.add(i)
-                taken[a].add(c)
-                groups[a].append((c, int(rows[c][i])))
-        return groups
+        return group_rows(self.tables.radar.timestamp_us, rows, priority, sync_tolerance_us)
 
     def iter_frames(
         self,
