@@ -24,462 +24,57 @@ Multi-GPU: launched by ``torchrun`` (``WORLD_SIZE``/``LOCAL_RANK`` in the enviro
 wrapped in DistributedDataParallel, mined queries are sharded with a DistributedSampler, and only
 rank 0 writes files. Every rank computes the full cache and validation (identical on all ranks, so
 mining and early-stopping decisions agree without communication).
+
+This module is the loop; the settings are in :mod:`.train_config`, devices and seeding in
+:mod:`.runtime`, descriptor passes and recall in :mod:`.descriptors`, mining and the loss in
+:mod:`.mining`, and starting from a checkpoint in :mod:`.resume`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
-import os
-import random
 import time
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
-from pydantic import Field, model_validator
 
-from radarslam.config import CONFIG_DIR, StrictModel, load_config
-from radarslam.errors import CheckpointError, ConfigError, DataError
+from radarslam.errors import CheckpointError
 from radarslam.io.atomic import write_json_atomic
 
-from .checkpoint import read_checkpoint, save_checkpoint
-from .config import check_device_name
-from .models import ModelConfig, build_model
-
-# Train-config fields that may change between a run and its resumption: they do not alter what
-# the optimisation computes (epochs/patience only move the end, the rest are execution details).
-RESUMABLE_CHANGES = frozenset(
-    {
-        "epochs",
-        "patience",
-        "time_budget_s",
-        "device",
-        "threads",
-        "cache_batch_size",
-        "micro_batch_size",
-    }
+from .checkpoint import save_checkpoint
+from .descriptors import (
+    FrameStore,
+    _check_data,
+    _descriptors,
+    compute_descriptors,
+    recall_at_n_from_descriptors,
 )
+from .mining import Triplet, _triplet_step_loss, mine_triplets
+from .models import ModelConfig, build_model
+from .resume import _load_resume_state, init_encoder
+from .runtime import _Dist, _epoch_rng, _setup_distributed, resolve_device, seed_everything
+from .train_config import RESUMABLE_CHANGES, TrainConfig, TrainResult, load_train_config
 
-
-class TrainConfig(StrictModel):
-    """Optimisation and mining settings (defaults = the AutoPlace reference)."""
-
-    epochs: int = Field(50, ge=1)
-    batch_size: int = Field(8, ge=1)  # queries per optimiser step
-    # Queries per forward/backward inside a batch; gradients accumulate to the full batch, so the
-    # result equals batch_size but peak memory is that of micro_batch_size (CPU: ~36 frames/query).
-    micro_batch_size: int | None = Field(None, ge=1)
-    lr: float = Field(0.01, gt=0)
-    momentum: float = Field(0.9, ge=0)
-    weight_decay: float = Field(1e-3, ge=0)
-    lr_step_epochs: int = Field(5, ge=1)
-    lr_gamma: float = Field(0.5, gt=0)
-    margin: float = Field(math.sqrt(0.1), gt=0)
-    num_negatives: int = Field(10, ge=1)
-    neg_sample: int = Field(1000, ge=1)
-    neg_candidates: int = Field(100, ge=1)
-    # Random subset of train queries mined per epoch (None = all); bounds CPU epochs.
-    queries_per_epoch: int | None = Field(None, ge=1)
-    cache_batch_size: int = Field(32, ge=1)  # frames per forward in descriptor passes
-    seed: int = 1234
-    device: str = "auto"  # "auto" (cuda if available, else cpu), "cpu", "cuda", "cuda:N"
-    # torch intra-op threads (None: torch default). CPU training is bitwise reproducible only with
-    # 1 thread: multi-threaded convolution backward sums in a varying order, and the mining's
-    # threshold decisions amplify last-bit differences into different triplets a few epochs on.
-    threads: int | None = Field(None, ge=1)
-    deterministic: bool = True  # cuDNN deterministic kernels
-    # bfloat16 autocast of the forward passes on CUDA (loss, mining and the optimiser stay in
-    # float32); ignored on CPU, where bf16 convolutions are slower than float32.
-    amp_bf16: bool = False
-    select_after_epoch: int = Field(25, ge=0)  # best checkpoint only for epochs > this
-    patience: int = Field(5, ge=0)  # epochs without val R@1 gain before stopping; 0 = never
-    # Wall-clock budget of this call: no new epoch starts once it is spent (checked after each
-    # epoch, and only once an epoch past select_after_epoch exists, so a best checkpoint does).
-    time_budget_s: float | None = Field(None, gt=0)
-    recall_ns: list[int] = Field(default_factory=lambda: [1, 5, 10, 20], min_length=1)
-    #: Start the spatial encoder from this checkpoint's (an SE or SE+TE model with the same
-    #: encoder layers); the LSTM still starts from scratch. Two-stage training: a compact LSTM
-    #: learnt jointly with a randomly initialised trunk settles below the SE alone on DPR'd data.
-    #: Ignored when resuming (the run's own weights win).
-    init_encoder_from: str | None = None
-
-    @model_validator(mode="after")
-    def _check(self) -> TrainConfig:
-        if self.select_after_epoch >= self.epochs:
-            raise ValueError(
-                f"select_after_epoch={self.select_after_epoch} must be below epochs={self.epochs} "
-                "(no epoch could be selected as best)"
-            )
-        check_device_name(self.device)
-        if self.amp_bf16 and self.device == "cpu":
-            raise ValueError("amp_bf16 needs a CUDA device (device is 'cpu')")
-        if 1 not in self.recall_ns or any(n < 1 for n in self.recall_ns):
-            raise ValueError(f"recall_ns must be positive and contain 1, got {self.recall_ns}")
-        return self
-
-
-def load_train_config(name_or_path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
-    """A preset name (``compact_cpu``) or a YAML path -> TrainConfig."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = CONFIG_DIR / "place_recognition" / f"train_{name_or_path}.yaml"
-        if not path.is_file():
-            raise ConfigError(f"unknown train preset {str(name_or_path)!r} ({path} missing)")
-    return load_config(TrainConfig, path, overrides)
-
-
-@dataclass(frozen=True, eq=False)
-class Triplet:
-    """One mined training example: frame indices of the query, its positive and hard negatives."""
-
-    query: int
-    positive: int
-    negatives: np.ndarray  # (k,) int64, 1 <= k <= num_negatives
-
-
-@dataclass
-class TrainResult:
-    best_checkpoint: Path
-    last_checkpoint: Path
-    history: list[dict] = field(default_factory=list)
-    best_epoch: int = 0
-    best_recall_at_1: float = float("nan")
-
-
-# --------------------------------------------------------------------------------------------
-# Devices, distributed set-up, seeding
-
-
-def resolve_device(name: str, local_rank: int = 0) -> torch.device:
-    """``auto`` / ``cpu`` / ``cuda`` / ``cuda:N`` -> a usable torch device, else ConfigError."""
-    try:
-        check_device_name(name)
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise ConfigError(f"device {name!r} requested but CUDA is not available")
-        if name == "cuda":
-            name = f"cuda:{local_rank}"
-        count = torch.cuda.device_count()
-        if int(name[5:]) >= count:
-            raise ConfigError(f"device {name!r} requested but only {count} CUDA device(s) exist")
-    return torch.device(name)
-
-
-@dataclass(frozen=True)
-class _Dist:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-    active: bool = False  # running under torch.distributed
-    owns_group: bool = False  # this module initialised the group (and must destroy it)
-
-
-def _setup_distributed(device_name: str) -> _Dist:
-    """torchrun sets WORLD_SIZE/RANK/LOCAL_RANK/MASTER_*; then train under DDP (even world 1)."""
-    import torch.distributed as dist
-
-    if "WORLD_SIZE" not in os.environ or "LOCAL_RANK" not in os.environ:
-        return _Dist()
-    try:
-        world = int(os.environ["WORLD_SIZE"])
-        rank = int(os.environ.get("RANK", os.environ["LOCAL_RANK"]))
-        local_rank = int(os.environ["LOCAL_RANK"])
-    except ValueError:
-        raise ConfigError("WORLD_SIZE/RANK/LOCAL_RANK are not integers") from None
-    owns = False
-    if not dist.is_initialized():
-        use_cuda = torch.cuda.is_available() and device_name != "cpu"
-        if use_cuda:
-            torch.cuda.set_device(local_rank)
-        dist.init_process_group(backend="nccl" if use_cuda else "gloo", init_method="env://")
-        owns = True
-    return _Dist(rank=rank, world=world, local_rank=local_rank, active=True, owns_group=owns)
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)  # noqa: NPY002 - seeds third-party code using the legacy API
-    torch.manual_seed(seed)
-
-
-def _epoch_rng(seed: int, epoch: int) -> np.random.Generator:
-    return np.random.default_rng([seed % 2**32, epoch])
-
-
-def _unwrap(model: torch.nn.Module) -> torch.nn.Module:
-    return model.module if hasattr(model, "module") else model
-
-
-def _autocast(device: torch.device, enabled: bool):
-    if enabled and device.type == "cuda":
-        return torch.autocast(device_type="cuda", dtype=torch.bfloat16)
-    return contextlib.nullcontext()
-
-
-# --------------------------------------------------------------------------------------------
-# Data access
-
-
-class FrameStore:
-    """Occupancy images as (U, C, H, W) float tensors on the compute device.
-
-    On CUDA the whole uint8 stack is uploaded once when it fits (gathers then run on the GPU);
-    otherwise frames are gathered from the numpy array per batch.
-    """
-
-    def __init__(self, images: Any, device: torch.device, cfg: ModelConfig, source: str = "data"):
-        arr = images if isinstance(images, np.ndarray) else np.asarray(images)
-        if arr.ndim == 3:
-            arr = arr[:, None]
-        if arr.ndim != 4:
-            raise DataError(f"{source}: images must be (N, H, W) or (N, C, H, W), got {arr.shape}")
-        want = (cfg.in_channels, cfg.image_size_px, cfg.image_size_px)
-        if arr.shape[1:] != want:
-            raise DataError(
-                f"{source}: images are {arr.shape[1:]} per frame but the model expects {want}"
-            )
-        if arr.size and (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
-            lo, hi = float(arr.min()), float(arr.max())
-            if lo < 0 or hi > 1:
-                raise DataError(
-                    f"{source}: image values must be occupancy in [0, 1], got [{lo:g}, {hi:g}]"
-                )
-        else:
-            raise DataError(f"{source}: images have non-numeric dtype {arr.dtype}")
-        self.array = arr
-        self.device = device
-        self.tensor: torch.Tensor | None = None
-        if device.type == "cuda":
-            free, _ = torch.cuda.mem_get_info(device)
-            if arr.nbytes < 0.3 * free:
-                self.tensor = torch.from_numpy(np.ascontiguousarray(arr)).to(device)
-
-    def __len__(self) -> int:
-        return len(self.array)
-
-    def get(self, idx: np.ndarray) -> torch.Tensor:
-        if self.tensor is not None:
-            sel = torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(self.device)
-            return self.tensor.index_select(0, sel).float()
-        out = torch.from_numpy(np.ascontiguousarray(self.array[idx]))
-        return out.to(self.device, non_blocking=True).float()
-
-
-def _check_data(data: Any, cfg: ModelConfig) -> None:
-    root = getattr(data, "root", "data")
-    for name in ("images", "positions_xy", "sequences", "splits"):
-        if not hasattr(data, name):
-            raise DataError(f"{root}: prepared data lacks '{name}'")
-    seq = np.asarray(data.sequences)
-    n = len(data.images)
-    if seq.ndim != 2 or len(seq) != n:
-        raise DataError(f"{root}: sequences must be (N={n}, L), got {seq.shape}")
-    if seq.shape[1] < cfg.seq_len:
-        raise DataError(
-            f"{root}: sequences hold {seq.shape[1]} frames but the model needs {cfg.seq_len}"
-        )
-    if seq.size and (seq.min() < 0 or seq.max() >= n):
-        raise DataError(f"{root}: sequences index frames outside [0, {n})")
-    for split in ("database", "train", "val"):
-        idx = np.asarray(data.splits.get(split, []))
-        if idx.size == 0:
-            raise DataError(f"{root}: split '{split}' is empty or missing")
-        if idx.min() < 0 or idx.max() >= n:
-            raise DataError(f"{root}: split '{split}' indexes frames outside [0, {n})")
-
-
-# --------------------------------------------------------------------------------------------
-# Descriptors and recall
-
-
-def _descriptors(
-    model: torch.nn.Module,
-    store: FrameStore,
-    sequences: np.ndarray,
-    indices: np.ndarray,
-    batch_size: int,
-    progress: bool = False,
-    desc: str = "descriptors",
-    amp: bool = False,
-) -> torch.Tensor:
-    """(M, D) descriptors on the store's device; every distinct frame is encoded once."""
-    from tqdm.auto import tqdm
-
-    net = _unwrap(model)
-    seq_len = net.cfg.seq_len
-    seqs = np.asarray(sequences)[np.asarray(indices, dtype=np.int64)][:, -seq_len:]
-    frames, inverse = np.unique(seqs, return_inverse=True)
-    inverse = torch.from_numpy(inverse.reshape(seqs.shape).astype(np.int64)).to(store.device)
-    was_training = net.training
-    net.eval()
-    try:
-        with torch.no_grad(), _autocast(store.device, amp):
-            feats = torch.empty((len(frames), net.cfg.frame_feature_dim()), device=store.device)
-            starts = range(0, len(frames), batch_size)
-            for s in tqdm(starts, desc=desc, disable=not progress, leave=False, unit="batch"):
-                feats[s : s + batch_size] = net.encode_frames(store.get(frames[s : s + batch_size]))
-            out = torch.empty((len(seqs), net.cfg.output_dim()), device=store.device)
-            agg = max(batch_size, 256)
-            for s in range(0, len(seqs), agg):
-                out[s : s + agg] = net.aggregate(feats[inverse[s : s + agg]])
-    finally:
-        net.train(was_training)
-    return out
-
-
-def compute_descriptors(
-    model: torch.nn.Module,
-    data: Any,
-    indices: np.ndarray,
-    batch_size: int = 32,
-    device: str | torch.device = "cpu",
-    progress: bool = False,
-) -> np.ndarray:
-    """(M, D) float32 unit descriptors of the sequences ``data.sequences[indices, -seq_len:]``."""
-    net = _unwrap(model)
-    dev = torch.device(device) if not isinstance(device, torch.device) else device
-    net.to(dev)
-    _check_sequences_only(data, net.cfg)
-    store = FrameStore(data.images, dev, net.cfg, source=str(getattr(data, "root", "data")))
-    out = _descriptors(net, store, data.sequences, np.asarray(indices), batch_size, progress)
-    return out.float().cpu().numpy()
-
-
-def _check_sequences_only(data: Any, cfg: ModelConfig) -> None:
-    seq = np.asarray(data.sequences)
-    root = getattr(data, "root", "data")
-    if seq.ndim != 2 or seq.shape[1] < cfg.seq_len:
-        raise DataError(f"{root}: sequences {seq.shape} hold fewer than {cfg.seq_len} frames")
-
-
-def _pairwise_l2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Euclidean distances between rows of a and b (unit vectors: sqrt(2 - 2 a.b), clamped)."""
-    sq = (a * a).sum(1, keepdim=True) + (b * b).sum(1)[None] - 2.0 * a @ b.T
-    return sq.clamp_min_(0).sqrt_()
-
-
-def recall_at_n_from_descriptors(
-    db_desc: torch.Tensor,
-    q_desc: torch.Tensor,
-    db_frames: np.ndarray,
-    query_frames: np.ndarray,
-    data: Any,
-    ns: list[int],
-) -> dict[int, float]:
-    """Fraction of queries with a true positive (``data.positives``) among their top-N matches."""
-    from .metrics import recall_at_n
-
-    k = min(max(ns), len(db_frames))
-    hits = np.zeros((len(query_frames), k), dtype=bool)
-    db_frames = np.asarray(db_frames)
-    for s in range(0, len(query_frames), 512):
-        top = torch.topk(_pairwise_l2(q_desc[s : s + 512], db_desc), k, largest=False).indices
-        top = db_frames[top.cpu().numpy()]
-        for i, q in enumerate(query_frames[s : s + 512]):
-            hits[s + i] = np.isin(top[i], np.asarray(data.positives(int(q))))
-    return recall_at_n(hits, ns)
-
-
-# --------------------------------------------------------------------------------------------
-# Hard-negative mining
-
-
-def mine_triplets(
-    q_desc: torch.Tensor,
-    query_frames: np.ndarray,
-    db_desc: torch.Tensor,
-    db_frames: np.ndarray,
-    data: Any,
-    cfg: TrainConfig,
-    rng: np.random.Generator,
-) -> tuple[list[Triplet], int]:
-    """Mine one triplet per query from the descriptor cache -> (triplets, number skipped)."""
-    n_frames = len(data.images)
-    row_of = np.full(n_frames, -1, dtype=np.int64)
-    row_of[np.asarray(db_frames)] = np.arange(len(db_frames))
-    root = getattr(data, "root", "data")
-    triplets: list[Triplet] = []
-    skipped = 0
-    for s in range(0, len(query_frames), 256):
-        dist = _pairwise_l2(q_desc[s : s + 256], db_desc).cpu().numpy()
-        for i, q in enumerate(query_frames[s : s + 256]):
-            q = int(q)
-            pos_rows = row_of[np.asarray(data.positives(q), dtype=np.int64)]
-            neg_pool = row_of[np.asarray(data.negatives_pool(q), dtype=np.int64)]
-            if (pos_rows < 0).any() or (neg_pool < 0).any():
-                raise DataError(f"{root}: positives/negatives of frame {q} are not database frames")
-            if pos_rows.size == 0 or neg_pool.size == 0:
-                skipped += 1
-                continue
-            d = dist[i]
-            best = int(np.argmin(d[pos_rows]))
-            d_pos = float(d[pos_rows[best]])
-            cand = np.unique(rng.choice(neg_pool, size=cfg.neg_sample, replace=True))
-            order = np.argsort(d[cand], kind="stable")[: cfg.neg_candidates]
-            near = cand[order]
-            violating = near[d[near] < d_pos + cfg.margin][: cfg.num_negatives]
-            if violating.size == 0:
-                skipped += 1
-                continue
-            triplets.append(
-                Triplet(
-                    query=q,
-                    positive=int(db_frames[pos_rows[best]]),
-                    negatives=np.asarray(db_frames)[violating].astype(np.int64),
-                )
-            )
-    return triplets, skipped
-
-
-# --------------------------------------------------------------------------------------------
-# One optimisation step
-
-
-def _triplet_step_loss(
-    model: torch.nn.Module,
-    store: FrameStore,
-    sequences: np.ndarray,
-    triplets: list[Triplet],
-    seq_len: int,
-    margin: float,
-    total_negatives: int,
-    amp: bool = False,
-) -> torch.Tensor:
-    """Loss of some triplets (sum over (q, p, n_i)) / ``total_negatives`` of the whole batch."""
-    frames_per_trip = [np.concatenate(([t.query, t.positive], t.negatives)) for t in triplets]
-    seq_frames = np.concatenate(frames_per_trip)
-    seqs = np.asarray(sequences)[seq_frames][:, -seq_len:]
-    uniq, inverse = np.unique(seqs, return_inverse=True)
-    seq_index = torch.from_numpy(inverse.reshape(seqs.shape).astype(np.int64)).to(store.device)
-    with _autocast(store.device, amp):
-        desc = model(store.get(uniq), seq_index)
-    desc = desc.float()
-    anchors, positives, negatives = [], [], []
-    offset = 0
-    for t in triplets:
-        k = len(t.negatives)
-        anchors.append(desc[offset].expand(k, -1))
-        positives.append(desc[offset + 1].expand(k, -1))
-        negatives.append(desc[offset + 2 : offset + 2 + k])
-        offset += 2 + k
-    loss = F.triplet_margin_loss(
-        torch.cat(anchors), torch.cat(positives), torch.cat(negatives),
-        margin=margin, p=2, reduction="sum",
-    )  # fmt: skip
-    return loss / total_negatives
-
-
-# --------------------------------------------------------------------------------------------
-# The training loop
+# callers and tests import these from here
+__all__ = [
+    "RESUMABLE_CHANGES",
+    "FrameStore",
+    "TrainConfig",
+    "TrainResult",
+    "Triplet",
+    "_triplet_step_loss",
+    "compute_descriptors",
+    "init_encoder",
+    "load_train_config",
+    "mine_triplets",
+    "recall_at_n_from_descriptors",
+    "resolve_device",
+    "seed_everything",
+    "train",
+]
 
 
 def _git_commit() -> str | None:
@@ -770,48 +365,3 @@ def _budget_spent(
         torch.distributed.broadcast(flag, src=0)
         spent = bool(flag.item() > 0)
     return spent
-
-
-def init_encoder(net: torch.nn.Module, path: str | Path) -> int:
-    """Copy the spatial encoder's weights of checkpoint ``path`` into ``net``; returns the count.
-
-    The encoders must match layer for layer (same widths, convolutions per block, input channels
-    and normalisation); anything else is a one-line CheckpointError naming the file.
-    """
-    payload = read_checkpoint(path)
-    stored = {k: v for k, v in payload["state_dict"].items() if k.startswith("encoder.")}
-    own = {k: v for k, v in net.state_dict().items() if k.startswith("encoder.")}
-    src = payload["model_config"]
-    mismatch = [
-        f"{key}: {src.get(key)!r} != {getattr(net.cfg, key)!r}"
-        for key in ("widths", "convs_per_block", "in_channels", "input_norm", "image_size_px")
-        if src.get(key) != getattr(net.cfg, key)
-    ]
-    if mismatch or set(stored) != set(own):
-        detail = "; ".join(mismatch) or "different encoder layers"
-        raise CheckpointError(f"{path}: encoder does not match the model being trained ({detail})")
-    net.load_state_dict({k: v.float() for k, v in stored.items()}, strict=False)
-    return len(stored)
-
-
-def _load_resume_state(path: Path, model_cfg: ModelConfig, train_cfg: TrainConfig) -> dict:
-    payload = read_checkpoint(path)
-    state = payload.get("training_state")
-    if not state:
-        raise CheckpointError(f"{path}: holds no training state to resume from")
-    have_model = payload["model_config"]
-    if have_model != model_cfg.model_dump(mode="json"):
-        diff = [k for k in have_model if have_model.get(k) != model_cfg.model_dump().get(k)]
-        raise CheckpointError(f"{path}: model config differs from the run's ({', '.join(diff)})")
-    have_train = dict(payload.get("train_config") or {})
-    want_train = train_cfg.model_dump(mode="json")
-    diff = [
-        k
-        for k in sorted(set(have_train) | set(want_train))
-        if k not in RESUMABLE_CHANGES and have_train.get(k) != want_train.get(k)
-    ]
-    if diff:
-        raise CheckpointError(
-            f"{path}: train config differs from the run's in {', '.join(diff)} (cannot resume)"
-        )
-    return {**state, "weights": payload["state_dict"]}
