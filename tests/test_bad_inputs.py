@@ -131,6 +131,27 @@ def _results_folder(root: Path, tmp: Path) -> None:
     write_results(tmp / "res", [SessionResult("scene-a", t, gt, gt, gt)], plots=False)
 
 
+def _odometry_results_folder(root: Path, tmp: Path) -> None:
+    from radarslam.geometry import se2_to_matrix
+    from radarslam.io.results import write_results_folder, write_trajectories
+
+    t = 1_600_000_000_000_000 + np.arange(20, dtype=np.int64) * 500_000
+    gt = np.stack([se2_to_matrix(0.8 * i, 0.0, 0.02 * i) for i in range(20)])
+
+    def contents(d: Path) -> None:
+        write_trajectories(d, "scene-a", t, {"odometry": gt, "gt": gt})
+
+    write_results_folder(tmp / "res", ["scene-a"], "odometry", contents, method="ours")
+
+
+def _edit_run_json(**fields: object) -> Damage:
+    def damage(root: Path, tmp: Path) -> None:
+        run = tmp / "res" / "run.json"
+        run.write_text(json.dumps({**json.loads(run.read_text()), **fields}))
+
+    return damage
+
+
 def _remove_results(*names: str) -> Damage:
     def damage(root: Path, tmp: Path) -> None:
         for name in names:
@@ -317,6 +338,21 @@ CASES: list[tuple[str, Damage, str, str]] = [
         ),
         "eval {tmp}/res --no-plots",
         "poses_scene-a.tum: missing (run.json lists session 'scene-a')",
+    ),
+    (
+        "eval: odometry folder without its odometry poses",
+        _then(
+            _odometry_results_folder,
+            _remove_results("odometry_scene-a.tum", "odometry_scene-a.kitti"),
+        ),
+        "eval {tmp}/res --no-plots",
+        "odometry_scene-a.tum: missing (run.json lists session 'scene-a')",
+    ),
+    (
+        "eval: unknown kind of results folder",
+        _then(_odometry_results_folder, _edit_run_json(kind="lidar")),
+        "eval {tmp}/res --no-plots",
+        "run.json: 'kind' must be one of slam, odometry, got 'lidar'",
     ),
     (
         "corrupt checkpoint",

@@ -1,5 +1,6 @@
 """Import structure of the package: no module imports itself back through others, the evaluator
-stands below the SLAM back end, and the command line starts without torch.
+stands below the SLAM back end, the file helpers (results folder included) below both and the
+odometry, and the command line starts without torch.
 
 The graph is read from the source with ``ast``: every ``import`` and ``from ... import`` of a
 ``radarslam`` module, at module level and inside functions (a lazy import is still a dependency),
@@ -141,6 +142,21 @@ def test_eval_does_not_import_slam():
         if module == "radarslam.eval" or module.startswith("radarslam.eval.")
         for target, line in targets.items()
         if target == "radarslam.slam" or target.startswith("radarslam.slam.")
+    ]
+    assert not bad, "; ".join(bad)
+
+
+def test_the_results_folder_stands_below_its_writers_and_reader():
+    """``radarslam.io`` (the results folder among it) is shared by SLAM, the odometry and the
+    evaluator, so it imports none of them."""
+    graph = import_graph()
+    above = ("radarslam.slam", "radarslam.odometry", "radarslam.eval")
+    bad = [
+        f"{module}:{line} imports {target}"
+        for module, targets in graph.items()
+        if module == "radarslam.io" or module.startswith("radarslam.io.")
+        for target, line in targets.items()
+        if any(target == a or target.startswith(f"{a}.") for a in above)
     ]
     assert not bad, "; ".join(bad)
 

@@ -1,6 +1,7 @@
 """``radarslam eval RESULTS_DIR``: metrics of a results folder (layout: docs/outputs.md).
 
-For every session and for the whole run, odometry-only and SLAM side by side:
+For every session and for the whole run, odometry-only and SLAM side by side (a folder that
+``radarslam odometry`` wrote holds odometry only: no SLAM rows, no loops):
 ATE (SE(2)-aligned RMSE, and unaligned from the first pose), RPE per ``rpe_time_s`` seconds and per
 ``rpe_distance_m`` metres, KITTI-style drift, and loop-closure precision / recall from
 ``loops.csv``. Run-level numbers pool the per-session errors (each session aligned on its own) and,
@@ -10,7 +11,6 @@ whether a multi-session map is consistent.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,14 +24,11 @@ from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth
 from radarslam.eval.metrics import align_se2, ate, drift, path_lengths_m, rpe, to_xy_yaw
 from radarslam.io.atomic import write_json_atomic
 from radarslam.io.loops import read_loops_csv_numbered
-from radarslam.io.results import check_session_name
-from radarslam.io.text import read_text
-from radarslam.io.trajectory import read_kitti, read_tum
+from radarslam.io.results import ResultsFolder, read_results, trajectory_path
 
 log = logging.getLogger("radarslam.eval")
 
 KINDS = ("odometry", "slam")
-_PREFIX = {"slam": "poses_", "odometry": "odometry_", "gt": "gt_"}
 
 
 class EvalConfig(StrictModel):
@@ -79,6 +76,8 @@ class EvalReport:
     run: dict[str, dict[str, float | None]]  # kind -> pooled numbers (None: nothing to pool)
     loops: LoopMetrics | None
     config: EvalConfig
+    kind: str = "slam"  # of the results folder: slam or odometry
+    method: str | None = None  # the odometry method of an odometry folder, when recorded
     errors_over_time: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
         default_factory=dict, repr=False
     )  # session -> kind -> (time_s, ATE errors)
@@ -86,6 +85,8 @@ class EvalReport:
     def as_dict(self) -> dict:
         return {
             "results_dir": str(self.results_dir),
+            "kind": self.kind,
+            "method": self.method,
             "sessions": self.sessions,
             "per_session": {
                 s: {k: m.as_dict() for k, m in kinds.items()}
@@ -105,132 +106,7 @@ def _clean(v):
     return v
 
 
-# --- reading -----------------------------------------------------------------------------------
-
-
-@dataclass
-class ResultsFolder:
-    path: Path
-    sessions: list[str]  # processing order
-    trajectories: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]  # session -> kind -> (t, T)
-    loops_path: Path | None
-    #: Map components from run.json (the anchored map first), None when not recorded.
-    components: list[list[str]] | None = None
-
-
-def read_results(results_dir: str | Path) -> ResultsFolder:
-    """The sessions ``run.json`` lists, in its order, with their trajectory files.
-
-    ``run.json`` is written last (and the folder as a whole, see
-    :func:`radarslam.slam.outputs.write_results`): a folder without it is incomplete. Files of
-    sessions it does not list are not read. Every listed session needs ``poses_<s>.tum`` and
-    ``gt_<s>.tum``; ``odometry_<s>.tum`` is optional (one warning names a missing one). Where a
-    ``.tum`` file is missing but its ``.kitti`` twin is there, the KITTI poses are read with the
-    timestamps of another TUM file of the session.
-    """
-    d = Path(results_dir)
-    if not d.is_dir():
-        raise DataError(f"{d}: results folder does not exist")
-    run = d / "run.json"
-    if not run.is_file():
-        if not any(any(d.glob(f"{prefix}*.tum")) for prefix in _PREFIX.values()):
-            raise DataError(f"{d}: no poses_*.tum, odometry_*.tum or gt_*.tum files")
-        raise DataError(
-            f"{d}: no run.json: not a complete results folder (was the run interrupted?)"
-        )
-    meta = _read_run_json(run)
-    sessions = meta.get("sessions")
-    if (
-        not isinstance(sessions, list)
-        or not sessions
-        or not all(isinstance(s, str) and s for s in sessions)
-    ):
-        raise DataError(f"{run}: 'sessions' must be a non-empty list of names")
-    if len(set(sessions)) != len(sessions):
-        raise DataError(f"{run}: 'sessions' lists a session twice: {sessions}")
-    for s in sessions:
-        try:
-            check_session_name(s)  # names make file names: no path separators
-        except DataError as exc:
-            raise DataError(f"{run}: {exc}") from None
-    found: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
-    no_odometry: list[Path] = []
-    for s in sessions:
-        found[s] = {}
-        kitti_only = []
-        for kind, prefix in _PREFIX.items():
-            p = d / f"{prefix}{s}.tum"
-            if p.is_file():
-                found[s][kind] = read_tum(p)
-            elif p.with_suffix(".kitti").is_file():
-                kitti_only.append((kind, p.with_suffix(".kitti")))
-            elif kind != "odometry":  # SLAM poses and ground truth are always written
-                raise DataError(f"{p}: missing (run.json lists session {s!r})")
-            else:
-                no_odometry.append(p)
-        for kind, path in kitti_only:
-            found[s][kind] = _read_kitti_twin(path, s, found[s])
-    if no_odometry:
-        log.warning(
-            "%s: missing; session %r is evaluated without its odometry (%d of %d session(s) "
-            "without)",
-            no_odometry[0],
-            no_odometry[0].stem.removeprefix(_PREFIX["odometry"]),
-            len(no_odometry),
-            len(sessions),
-        )
-    return ResultsFolder(
-        d,
-        sessions,
-        found,
-        (d / "loops.csv") if (d / "loops.csv").is_file() else None,
-        _components(run, meta, sessions),
-    )
-
-
-def _read_kitti_twin(
-    path: Path, session: str, tum: dict[str, tuple[np.ndarray, np.ndarray]]
-) -> tuple[np.ndarray, np.ndarray]:
-    """A KITTI trajectory whose TUM twin is missing: the three trajectories of a session share
-    their timestamps (one pose per key frame), so they are taken from a TUM file of the same
-    session with as many poses."""
-    poses = read_kitti(path)
-    for kind in ("gt", "slam", "odometry"):
-        if kind in tum and len(tum[kind][0]) == len(poses):
-            return tum[kind][0], poses
-    raise DataError(
-        f"{path}: KITTI poses carry no timestamps and no TUM file of session {session!r} has "
-        f"{len(poses)} poses to take them from"
-    )
-
-
-def _read_run_json(run: Path) -> dict:
-    try:
-        meta = json.loads(read_text(run, "run.json"))
-    except json.JSONDecodeError as exc:
-        raise DataError(f"{run}:{exc.lineno}: invalid JSON ({exc.msg})") from None
-    if not isinstance(meta, dict):
-        raise DataError(f"{run}: not a JSON object with a 'sessions' list")
-    return meta
-
-
-def _components(run: Path, meta: dict, sessions: list[str]) -> list[list[str]] | None:
-    comps = meta.get("components")
-    if comps is None:
-        return None
-    if (
-        not isinstance(comps, list)
-        or not comps
-        or not all(
-            isinstance(c, list) and c and all(isinstance(s, str) and s in sessions for s in c)
-            for c in comps
-        )
-    ):
-        raise DataError(
-            f"{run}: 'components' must be a non-empty list of non-empty lists of the sessions "
-            "it lists"
-        )
-    return comps
+# --- association ----------------------------------------------------------------------------
 
 
 def associate(
@@ -299,7 +175,7 @@ def evaluate_results(
         traj = folder.trajectories[s]
         gt_t, gt_p = traj["gt"]
         if len(gt_t) < 2:
-            gt_file = folder.path / f"{_PREFIX['gt']}{s}.tum"
+            gt_file = trajectory_path(folder.path, "gt", s)
             raise DataError(f"{gt_file}: {len(gt_t)} ground-truth poses; need at least 2")
         gt_for_loops[s] = SessionGroundTruth(gt_t, gt_p)
         per_session[s] = {}
@@ -311,8 +187,8 @@ def evaluate_results(
             i_e, i_g = associate(est_t, gt_t, cfg.max_time_diff_us)
             if len(i_e) < 2:
                 raise DataError(
-                    f"{folder.path}/{_PREFIX[kind]}{s}.tum: only {len(i_e)} poses match the ground "
-                    f"truth in time (within {cfg.max_time_diff_us} us); need at least 2"
+                    f"{trajectory_path(folder.path, kind, s)}: only {len(i_e)} poses match the "
+                    f"ground truth in time (within {cfg.max_time_diff_us} us); need at least 2"
                 )
             e, r, t = est_p[i_e], gt_p[i_g], est_t[i_e]
             m, errs = trajectory_metrics(e, r, t, cfg)
@@ -369,6 +245,8 @@ def evaluate_results(
         run=run,
         loops=loop_metrics,
         config=cfg,
+        kind=folder.kind,
+        method=folder.method,
         errors_over_time=errors_t,
     )
     if write:
@@ -444,7 +322,8 @@ def write_plots(folder: ResultsFolder, report: EvalReport) -> None:
         for s in folder.sessions
     ]
     plots = folder.path / "plots"
-    plot_trajectories(plots / "trajectories.png", trajs, segments, title="SLAM vs odometry vs GT")
+    title = "SLAM vs odometry vs GT" if folder.kind == "slam" else "odometry vs GT"
+    plot_trajectories(plots / "trajectories.png", trajs, segments, title=title)
     for s in folder.sessions:
         errs = report.errors_over_time.get(s, {})
         plot_errors_over_time(

@@ -1,2 +1,2 @@
-"""File helpers: atomic writes, trajectory formats, reading text files, and the records and
-naming rules of a results folder that its writer (SLAM) and its reader (eval) share."""
+"""File helpers: atomic writes, trajectory formats, reading text files, and the results folder
+that its writers (``radarslam run``, ``radarslam odometry``) and its reader (eval) share."""

@@ -1,9 +1,10 @@
-"""Writing a SLAM results folder (layout documented in docs/outputs.md), every file atomically.
+"""Writing a SLAM results folder (layout and the files it shares with an odometry folder:
+:mod:`radarslam.io.results`, docs/outputs.md), every file atomically.
 
 ::
 
     RESULTS_DIR/
-      run.json                      format tag and the session order (processing order)
+      run.json                      format tag, kind "slam", the session order (processing order)
       poses_<session>.tum / .kitti  SLAM estimate per key frame (world_from_ego)
       odometry_<session>.tum/.kitti odometry-only estimate, same key frames
       gt_<session>.tum / .kitti     ground truth at the same timestamps
@@ -13,40 +14,32 @@
       pose_graph.g2o                (optional) the final graph
       metrics.json, plots/*.png     written by ``radarslam eval RESULTS_DIR``
 
-:func:`write_results` writes the folder as a whole: everything goes into a hidden sibling folder
-that then replaces ``RESULTS_DIR``, so a reader never sees a partial folder (an interrupted run
-leaves the previous one) and a re-run leaves no file of the previous run behind.
+:func:`write_results` writes the folder as a whole
+(:func:`radarslam.io.results.write_results_folder`): a reader never sees a partial folder (an
+interrupted run leaves the previous one) and a re-run leaves no file of the previous run behind.
 """
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from radarslam.errors import DataError
-from radarslam.io.atomic import (
-    atomic_folder,
-    check_output_folder,
-    write_json_atomic,
-    write_text_atomic,
-)
+from radarslam.io.atomic import write_text_atomic
 from radarslam.io.loops import LoopCandidate, write_loops_csv
 from radarslam.io.ply import write_ply_points
-from radarslam.io.results import RESULTS_FORMAT, check_session_name
-from radarslam.io.trajectory import write_kitti, write_tum
+from radarslam.io.results import check_results_dir, write_results_folder, write_trajectories
 from radarslam.slam.map import StaticMap
 
-#: What a results folder holds (this module's files, ``radarslam eval``'s, the benchmark's, the
-#: temporary files of atomic writes). An existing folder is replaced only when it holds nothing
-#: else.
-_RESULT_ENTRY = re.compile(
-    r"^(?:(?:poses|odometry|gt)_[^/]+\.(?:tum|kitti)|run\.json|config\.yaml|loops\.csv|map\.ply"
-    r"|timing\.json|metrics\.json|bench\.json|pose_graph\.g2o|plots|\.[^/]*\.tmp[^/]*)$"
-)
+__all__ = [
+    "SessionResult",
+    "check_results_dir",
+    "write_map_ply",
+    "write_results",
+    "write_session",
+]
 
 
 @dataclass(frozen=True)
@@ -61,18 +54,12 @@ class SessionResult:
 
 
 def write_session(results_dir: str | Path, result: SessionResult) -> None:
-    check_session_name(result.name)
-    d = Path(results_dir)
-    ts = np.asarray(result.timestamps_us)
-    for stem, poses in (
-        ("poses", result.slam_poses),
-        ("odometry", result.odometry_poses),
-        ("gt", result.gt_poses),
-    ):
-        if poses is None:
-            continue
-        write_tum(d / f"{stem}_{result.name}.tum", ts, poses)
-        write_kitti(d / f"{stem}_{result.name}.kitti", poses)
+    write_trajectories(
+        results_dir,
+        result.name,
+        result.timestamps_us,
+        {"slam": result.slam_poses, "odometry": result.odometry_poses, "gt": result.gt_poses},
+    )
 
 
 def write_map_ply(path: str | Path, static_map: StaticMap) -> None:
@@ -85,18 +72,6 @@ def write_map_ply(path: str | Path, static_map: StaticMap) -> None:
         v = np.clip((np.nan_to_num(rcs, nan=lo) - lo) / max(hi - lo, 1e-9), 0, 1)
         colors = np.column_stack([v, 0.5 * np.ones_like(v), 1 - v])
     write_ply_points(path, xyz, colors)
-
-
-def check_results_dir(results_dir: str | Path) -> Path:
-    """Fail before any work when ``results_dir`` cannot become a results folder: a file is in
-    the way, its parent cannot be created or written, or it is a folder holding other things
-    (which :func:`write_results` would replace). Creates the parent folder."""
-    return check_output_folder(results_dir, _is_result_entry, "result file")
-
-
-def _is_result_entry(entry: Path) -> bool:
-    # anything else (a user's notes beside the results, say) would be lost with the folder
-    return bool(_RESULT_ENTRY.match(entry.name))
 
 
 def write_results(
@@ -118,20 +93,22 @@ def write_results(
     folder before it replaces ``results_dir`` (``radarslam run`` evaluates it there, so that an
     interrupted evaluation leaves the previous folder, not a new one without its metrics).
     """
-    names = [check_session_name(s.name) for s in sessions]
-    if len(set(names)) != len(names):
-        raise DataError(f"results: duplicate session names in {names}")
-    target = check_results_dir(results_dir)
-    with atomic_folder(target) as tmp:
-        _write_contents(tmp, sessions, names, loops, static_map, config_yaml, plots, components)
-        for name, obj in (extra_json or {}).items():
-            write_json_atomic(tmp / name, obj)
-        if finish is not None:
-            finish(tmp)
-    return Path(results_dir)
+
+    def contents(d: Path) -> None:
+        _write_contents(d, sessions, loops, static_map, config_yaml, plots)
+
+    return write_results_folder(
+        results_dir,
+        [s.name for s in sessions],
+        "slam",
+        contents,
+        components=components,
+        extra_json=extra_json,
+        finish=finish,
+    )
 
 
-def _write_contents(d, sessions, names, loops, static_map, config_yaml, plots, components) -> None:
+def _write_contents(d, sessions, loops, static_map, config_yaml, plots) -> None:
     for s in sessions:
         write_session(d, s)
     if loops is not None:
@@ -148,7 +125,3 @@ def _write_contents(d, sessions, names, loops, static_map, config_yaml, plots, c
             )
     if config_yaml is not None:
         write_text_atomic(d / "config.yaml", config_yaml)
-    run = {"format": RESULTS_FORMAT, "sessions": names}
-    if components is not None:  # the anchored map first; the others live in their own frames
-        run["components"] = [list(c) for c in components]
-    write_json_atomic(d / "run.json", run)

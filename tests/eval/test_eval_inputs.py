@@ -172,3 +172,56 @@ def test_kitti_files_are_read_where_the_tum_twin_is_missing(tmp_path):
     kitti.write_text(kitti.read_text() + kitti.read_text().splitlines()[-1] + "\n")
     with pytest.raises(DataError, match=r"poses_scene-a\.kitti: KITTI poses carry no timestamps"):
         evaluate_results(tmp_path, _cfg(), write=False)
+
+
+def _write_odometry(d, names=("scene-a", "scene-b"), method="ours"):
+    """An odometry folder as ``radarslam odometry`` writes it (frames: the sessions' poses)."""
+    from radarslam.io.results import write_results_folder, write_trajectories
+
+    sessions = [_session(s, T0 + k * 3_600_000_000) for k, s in enumerate(names)]
+
+    def contents(out):
+        for s in sessions:
+            traj = {"odometry": s.odometry_poses, "gt": s.gt_poses}
+            write_trajectories(out, s.name, s.timestamps_us, traj)
+
+    write_results_folder(d, names, "odometry", contents, method=method)
+    return sessions
+
+
+def test_an_odometry_folder_has_odometry_rows_only(tmp_path):
+    _write_odometry(tmp_path)
+    report = evaluate_results(tmp_path, _cfg())
+    assert (report.kind, report.method) == ("odometry", "ours")
+    assert all(set(kinds) == {"odometry"} for kinds in report.per_session.values())
+    assert set(report.run) == {"odometry"} and report.loops is None
+    # the same trajectories in a SLAM folder give the same odometry numbers
+    _write(tmp_path / "slam", loops=False)
+    slam = evaluate_results(tmp_path / "slam", _cfg())
+    assert slam.kind == "slam" and set(slam.per_session["scene-a"]) == {"odometry", "slam"}
+    for s in ("scene-a", "scene-b"):
+        a = report.per_session[s]["odometry"].as_dict()
+        assert a == pytest.approx(slam.per_session[s]["odometry"].as_dict(), abs=1e-9)
+    res = CliRunner().invoke(app, ["eval", str(tmp_path), "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert "slam" not in res.output and "loops:" not in res.output
+
+
+def test_an_odometry_folder_needs_its_odometry_and_a_known_kind(tmp_path):
+    _write_odometry(tmp_path)
+    (tmp_path / "loops.csv").write_text("not read in an odometry folder\n")
+    evaluate_results(tmp_path, _cfg(), write=False)
+    for ext in ("tum", "kitti"):
+        (tmp_path / f"odometry_scene-b.{ext}").unlink()
+    with pytest.raises(DataError) as err:
+        evaluate_results(tmp_path, _cfg(), write=False)
+    assert str(err.value) == (
+        f"{tmp_path / 'odometry_scene-b.tum'}: missing (run.json lists session 'scene-b')"
+    )
+    run = tmp_path / "run.json"
+    meta = json.loads(run.read_text())
+    for bad, match in (({"kind": "lidar"}, "'kind' must be one of slam, odometry, got 'lidar'"),
+                       ({"method": 3}, "'method' must be a string, got 3")):  # fmt: skip
+        run.write_text(json.dumps({**meta, **bad}))
+        with pytest.raises(DataError, match=re.escape(f"{run}: {match}")):
+            evaluate_results(tmp_path, _cfg(), write=False)
