@@ -17,7 +17,9 @@ def _fmt(v, digits: int = 3) -> str:
 
 
 def eval_command(
-    results_dir: Annotated[Path, typer.Argument(help="Results folder (see docs/outputs.md).")],
+    results_dir: Annotated[
+        Path, typer.Argument(help="Results folder of run or odometry (docs/outputs.md).")
+    ],
     config: Annotated[
         Path | None,
         typer.Option(help="Evaluation YAML (default: radarslam/configs/eval/default.yaml)."),
@@ -27,8 +29,8 @@ def eval_command(
     ] = None,
     plots: Annotated[bool, typer.Option(help="Write PNG plots under RESULTS_DIR/plots.")] = True,
 ) -> None:
-    """ATE / RPE / drift of odometry and SLAM side by side, loop precision/recall; writes
-    RESULTS_DIR/metrics.json."""
+    """ATE / RPE / drift of odometry and SLAM side by side, loop precision/recall (a folder of
+    `radarslam odometry`: its odometry only); writes RESULTS_DIR/metrics.json."""
     from radarslam.config import CONFIG_DIR, load_config
     from radarslam.eval.evaluate import EvalConfig, evaluate_results
     from radarslam.io.atomic import atomic_batch

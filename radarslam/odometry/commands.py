@@ -32,20 +32,22 @@ def odometry(
     ] = "ours",
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
 ) -> None:
-    """Radar odometry over scenes: poses in TUM and KITTI formats, ground truth alongside."""
+    """Radar odometry over scenes: a results folder (docs/outputs.md) with the poses in TUM and
+    KITTI formats, ground truth alongside; `radarslam eval OUT` evaluates it."""
     from radarslam.config import load_config
     from radarslam.errors import ConfigError
+    from radarslam.io.results import check_results_dir
     from radarslam.nuscenes.commands import scene_names
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import METHODS
     from radarslam.odometry.config import OdometryConfig
-    from radarslam.odometry.run import check_output_dir, run_odometry, write_outputs
+    from radarslam.odometry.run import run_odometry, write_outputs
 
     if method not in METHODS:
         raise ConfigError(f"--method {method!r}: choose one of {', '.join(METHODS)}")
     path = config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
     cfg = load_config(OdometryConfig, path, set_)
-    check_output_dir(out)  # a bad --out fails now, not after the run
+    check_results_dir(out)  # a bad --out fails now, not after the run
     reader = NuScenesRadar(dataroot, version)
     names = scene_names(scenes)
     infos = [reader.scene(n) for n in names] if names else reader.scenes()

@@ -253,58 +253,36 @@ def _progress(enabled: bool, infos: Sequence[SceneInfo], reader):
 # --- outputs -------------------------------------------------------------------------------------
 
 
-_SCENE_FILES = frozenset(
-    ("estimate.tum", "estimate.kitti", "ground_truth.tum", "ground_truth.kitti", "key_frames.csv")
-)
-
-
-def _is_output(entry: Path) -> bool:
-    """Whether an entry of an existing output folder is one of :func:`write_outputs`' files."""
-    if entry.name in ("config.yaml", "summary.json") or entry.name.startswith("."):
-        return entry.is_file() or entry.name.startswith(".")
-    if not entry.is_dir() or entry.is_symlink():
-        return False
-    try:
-        return all(e.name in _SCENE_FILES or e.name.startswith(".") for e in entry.iterdir())
-    except OSError:
-        return False
-
-
-def check_output_dir(out_dir: str | Path) -> Path:
-    """Fail before any work when ``out_dir`` cannot take the outputs: a file in the way, a parent
-    that cannot be created, or a folder holding anything but an earlier run's outputs (the
-    folder is replaced as a whole). Returns the folder to write."""
-    from radarslam.io.atomic import check_output_folder
-
-    return check_output_folder(out_dir, _is_output, "file of an odometry run")
-
-
 def write_outputs(traj: OdometryTrajectory, out_dir: str | Path, config: OdometryConfig) -> dict:
-    """Write per scene ``<scene>/{estimate,ground_truth}.{tum,kitti}`` and ``key_frames.csv``,
-    plus ``config.yaml`` and ``summary.json`` (metrics per scene); returns the summary.
+    """Write the odometry results folder (:mod:`radarslam.io.results`, kind ``odometry``): per
+    scene ``odometry_<scene>.{tum,kitti}``, ``gt_<scene>.{tum,kitti}`` and
+    ``key_frames_<scene>.csv``, plus ``config.yaml``, ``summary.json`` (metrics per scene and of
+    the run, the Doppler calibration) and ``run.json``; returns the summary.
 
-    The folder is written as a whole (:func:`radarslam.io.atomic.atomic_folder`): a re-run with
-    fewer scenes leaves no folder of the others, an interrupted one leaves the previous folder."""
+    The folder is written as a whole: a re-run with fewer scenes leaves no file of the others,
+    an interrupted one leaves the previous folder."""
     from radarslam.config import dump_config
-    from radarslam.io.atomic import atomic_folder, write_json_atomic, write_text_atomic
-    from radarslam.io.trajectory import write_kitti, write_tum
+    from radarslam.io.atomic import write_json_atomic, write_text_atomic
+    from radarslam.io.results import key_frames_path, write_results_folder, write_trajectories
 
+    names = list(dict.fromkeys(traj.scene_names))
     summary: dict = {"method": traj.method, "scenes": {}}
-    with atomic_folder(check_output_dir(out_dir)) as out:
-        for name in dict.fromkeys(traj.scene_names):
+
+    def contents(out: Path) -> None:
+        for name in names:
             sub = traj.scene(name)
-            d = out / name
-            write_tum(d / "estimate.tum", sub.timestamps_us, sub.poses)
-            write_tum(d / "ground_truth.tum", sub.timestamps_us, sub.ground_truth)
-            write_kitti(d / "estimate.kitti", sub.poses)
-            write_kitti(d / "ground_truth.kitti", sub.ground_truth)
-            write_text_atomic(d / "key_frames.csv", _key_frames_csv(sub))
+            write_trajectories(
+                out, name, sub.timestamps_us, {"odometry": sub.poses, "gt": sub.ground_truth}
+            )
+            write_text_atomic(key_frames_path(out, name), _key_frames_csv(sub))
             summary["scenes"][name] = scene_metrics(sub)
         summary["total"] = scene_metrics(traj)
         if traj.calibration is not None:
             summary["doppler_calibration"] = traj.calibration
         write_text_atomic(out / "config.yaml", dump_config(config))
         write_json_atomic(out / "summary.json", summary)
+
+    write_results_folder(out_dir, names, "odometry", contents, method=traj.method)
     return summary
 
 

@@ -42,12 +42,14 @@ def test_outputs_replace_an_earlier_run_as_a_whole(tiny_dataroot, tmp_path, monk
     names = [s.name for s in NuScenesRadar(tiny_dataroot, "v1.0-mini").scenes()]
     args = ["odometry", "--dataroot", str(tiny_dataroot), "--out", str(out), "--no-progress"]
     assert CliRunner().invoke(app, args).exit_code == 0
-    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == sorted(names)
-    # a re-run over one scene leaves no folder of the other
+    assert sorted(p.name for p in out.glob("gt_*.tum")) == sorted(f"gt_{n}.tum" for n in names)
+    # a re-run over one scene leaves no file of the other
     result = CliRunner().invoke(app, [*args, "--scenes", names[0]])
     assert result.exit_code == 0, result.output
+    s = names[0]
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        [names[0], "config.yaml", "summary.json"]
+        ["config.yaml", "run.json", "summary.json", f"key_frames_{s}.csv"]
+        + [f"{stem}_{s}.{ext}" for stem in ("gt", "odometry") for ext in ("kitti", "tum")]
     )
     before = (out / "summary.json").read_text()
 
@@ -66,15 +68,15 @@ def test_outputs_replace_an_earlier_run_as_a_whole(tiny_dataroot, tmp_path, monk
 
 def test_a_folder_holding_other_things_is_not_replaced(tmp_path):
     out = tmp_path / "odo"
-    (out / "scene-0001").mkdir(parents=True)
-    (out / "scene-0001" / "estimate.tum").write_text("")
+    out.mkdir()
+    (out / "odometry_scene-0001.tum").write_text("")
     (out / "notes.txt").write_text("mine")
     nowhere = str(tmp_path / "no-dataroot")
     result = CliRunner().invoke(
         app, ["odometry", "--dataroot", nowhere, "--out", str(out), "--no-progress"]
     )
     assert isinstance(result.exception, DataError)
-    assert str(result.exception).startswith(f"{out}: holds 'notes.txt', which is not a file")
+    assert str(result.exception).startswith(f"{out}: holds 'notes.txt', which is not a result file")
     assert (out / "notes.txt").read_text() == "mine"
 
 
@@ -98,3 +100,31 @@ def test_run_odometry_scene_arguments(tiny_dataroot):
     for bad in (0, -3, 2.5):
         with pytest.raises(ConfigError, match=f"max_frames_per_scene must be .*got {bad!r}"):
             run_odometry(reader, name, progress=False, max_frames_per_scene=bad)
+
+
+def test_eval_reads_the_odometry_folder(tiny_dataroot, tmp_path):
+    import json
+
+    out = tmp_path / "odo"
+    args = ["odometry", "--dataroot", str(tiny_dataroot), "--out", str(out), "--no-progress"]
+    result = CliRunner().invoke(app, [*args, "--method", "doppler"])
+    assert result.exit_code == 0, result.output
+    run = json.loads((out / "run.json").read_text())
+    assert run["kind"] == "odometry" and run["method"] == "doppler"
+    summary = json.loads((out / "summary.json").read_text())
+    assert run["sessions"] == list(summary["scenes"])
+
+    result = CliRunner().invoke(app, ["eval", str(out), "--no-plots"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["kind"] == "odometry" and metrics["method"] == "doppler"
+    assert metrics["loops"] is None and set(metrics["run"]) == {"odometry"}
+    for scene, numbers in summary["scenes"].items():
+        per_kind = metrics["per_session"][scene]
+        assert set(per_kind) == {"odometry"}  # no SLAM rows
+        assert per_kind["odometry"]["num_poses"] == numbers["frames"]
+        # every frame, one segment per scene: eval's ATE is the run's own
+        assert np.isclose(per_kind["odometry"]["ate_rmse_m"], numbers["ate_rmse_m"], rtol=1e-6)
+    # eval's files belong to the folder: a re-run replaces it
+    assert CliRunner().invoke(app, args).exit_code == 0
+    assert not (out / "metrics.json").exists()

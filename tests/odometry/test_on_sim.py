@@ -79,16 +79,18 @@ def test_cli_writes_tum_kitti_and_ground_truth(tiny_dataroot, tmp_path):
          "--set", "registration.voxel_size_m=1.0", "--no-progress"],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
-    ts, est = read_tum(out / scene / "estimate.tum")
-    ts_gt, gt = read_tum(out / scene / "ground_truth.tum")
+    ts, est = read_tum(out / f"odometry_{scene}.tum")
+    ts_gt, gt = read_tum(out / f"gt_{scene}.tum")
     assert np.array_equal(ts, ts_gt) and len(ts) > 100
-    assert np.allclose(read_kitti(out / scene / "estimate.kitti")[:, :3], est[:, :3], atol=1e-9)
+    assert np.allclose(read_kitti(out / f"odometry_{scene}.kitti")[:, :3], est[:, :3], atol=1e-9)
     frames = list(reader.iter_frames(scene))
     assert np.allclose(gt, np.array([f.world_from_ego for f in frames]), atol=1e-9)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["scenes"][scene]["ate_rmse_m"] < 0.1
     assert (out / "config.yaml").is_file()
-    header = (out / scene / "key_frames.csv").read_text().splitlines()[0]
+    run = json.loads((out / "run.json").read_text())
+    assert run["kind"] == "odometry" and run["method"] == "ours" and run["sessions"] == [scene]
+    header = (out / f"key_frames_{scene}.csv").read_text().splitlines()[0]
     assert header.startswith("timestamp_us,sample_token,dx_m,dy_m,dyaw_rad,cov_xx")
 
 
