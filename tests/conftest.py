@@ -81,3 +81,29 @@ def real_dataroot() -> Path:
             pytrace=False,
         )
     return root
+
+
+@pytest.fixture
+def run_cli(capsys) -> Callable[[list[str]], tuple[object, str]]:
+    """Run ``radarslam`` in this process as the console entry does (``cli.main`` with ``argv``):
+    (exit code, stderr). The SIGTERM handler the CLI installs is put back afterwards."""
+    import signal
+    import sys
+
+    from radarslam import cli
+
+    def run(argv: list[str]) -> tuple[object, str]:
+        old_term, old_argv = signal.getsignal(signal.SIGTERM), sys.argv
+        sys.argv = ["radarslam", *argv]
+        try:
+            try:
+                cli.main()
+                code: object = 0
+            except SystemExit as exc:
+                code = exc.code
+        finally:
+            sys.argv = old_argv
+            signal.signal(signal.SIGTERM, old_term)
+        return code, capsys.readouterr().err
+
+    return run

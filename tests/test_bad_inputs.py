@@ -18,15 +18,11 @@ import json
 import os
 import shlex
 import shutil
-import signal
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
-
-from radarslam import cli
 
 VERSION = "v1.0-mini"
 Damage = Callable[[Path, Path], None]  # (dataroot copy, scratch folder) -> None
@@ -397,33 +393,17 @@ def _digest(folder: Path) -> dict[str, str]:
     }
 
 
-def _main(argv: list[str], capsys) -> tuple[object, str]:
-    old_term = signal.getsignal(signal.SIGTERM)
-    old_argv = sys.argv
-    sys.argv = ["radarslam", *argv]
-    try:
-        try:
-            cli.main()
-            code = 0
-        except SystemExit as exc:
-            code = exc.code
-    finally:
-        sys.argv = old_argv
-        signal.signal(signal.SIGTERM, old_term)
-    return code, capsys.readouterr().err
-
-
 @pytest.mark.parametrize(
     ("name", "damage", "command", "expected"), CASES, ids=[c[0] for c in CASES]
 )
 def test_bad_input_is_one_error_line(
-    tiny_dataroot, tmp_path, capsys, name, damage, command, expected
+    tiny_dataroot, tmp_path, run_cli, name, damage, command, expected
 ):
     root = _fresh_copy(tiny_dataroot, tmp_path / "data")
     damage(root, tmp_path)
     before = _digest(tmp_path)
     argv = shlex.split(command.format(root=root, tmp=tmp_path))
-    code, err = _main(argv, capsys)
+    code, err = run_cli(argv)
     errors = [line for line in err.splitlines() if line.startswith("error:")]
     assert code == 2, err
     assert len(errors) == 1 and err.rstrip("\n").endswith(errors[0]), err
@@ -433,8 +413,8 @@ def test_bad_input_is_one_error_line(
     assert {k: v for k, v in after.items() if k in before} == before  # no input file changed
 
 
-def test_a_broken_scene_does_not_block_the_others(tiny_dataroot, tmp_path, capsys):
+def test_a_broken_scene_does_not_block_the_others(tiny_dataroot, tmp_path, run_cli):
     root = _fresh_copy(tiny_dataroot, tmp_path / "data")
     _no_samples_in_second_scene(root, tmp_path)
-    code, err = _main(shlex.split(STATS.format(root=root) + " --scenes scene-0001"), capsys)
+    code, err = run_cli(shlex.split(STATS.format(root=root) + " --scenes scene-0001"))
     assert code == 0, err

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import re
-import signal
 import subprocess
 import sys
 
@@ -184,23 +183,6 @@ def test_stats_command_against_itself(tiny_dataroot, tmp_path):
     assert not list(tmp_path.glob(".*"))  # the atomic write left no temporary file
 
 
-def _main(argv: list[str], capsys) -> tuple[object, str]:
-    from radarslam import cli
-
-    old_term, old_argv = signal.getsignal(signal.SIGTERM), sys.argv
-    sys.argv = ["radarslam", *argv]
-    try:
-        try:
-            cli.main()
-            code = 0
-        except SystemExit as exc:
-            code = exc.code
-    finally:
-        sys.argv = old_argv
-        signal.signal(signal.SIGTERM, old_term)
-    return code, capsys.readouterr().err
-
-
 @pytest.mark.parametrize(
     ("extra", "expected"),
     [
@@ -220,10 +202,10 @@ def _main(argv: list[str], capsys) -> tuple[object, str]:
         (["--json", "{tmp}"], r"error: --json .*: is a folder, not a file"),
     ],
 )
-def test_bad_reference_is_one_error_line(tiny_dataroot, tmp_path, capsys, extra, expected):
+def test_bad_reference_is_one_error_line(tiny_dataroot, tmp_path, run_cli, extra, expected):
     fill = {"missing": str(tmp_path / "missing"), "root": str(tiny_dataroot), "tmp": str(tmp_path)}
     argv = ["stats", str(tiny_dataroot), *(a.format(**fill) for a in extra)]
-    code, err = _main(argv, capsys)
+    code, err = run_cli(argv)
     assert code == 2, err
     assert len(err.strip().splitlines()) == 1 and re.match(expected, err.strip()), err
 
