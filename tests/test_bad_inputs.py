@@ -273,7 +273,7 @@ CASES: list[tuple[str, Damage, str, str]] = [
         for key, value, message in [
             ("registration.fixed_sigma_m", "inf", "Input should be a finite number"),
             ("registration.fixed_sigma_m", "1e300", "Input should be less than or equal to 1000"),
-            ("registration.min_sigma_m", "inf", "Input should be a finite number"),
+            ("registration.fixed_sigma_m", "inf", "Input should be a finite number"),
             ("registration.voxel_size_m", "inf", "Input should be a finite number"),
             ("doppler.noise_floor_mps", "inf", "Input should be a finite number"),
             ("doppler.noise_floor_mps", "1e300", "Input should be less than or equal to 1000"),

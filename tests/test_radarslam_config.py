@@ -68,7 +68,7 @@ def test_every_settings_model_refuses_non_finite_floats():
     [
         "odometry.registration.fixed_sigma_m=inf",
         "odometry.registration.fixed_sigma_m=1e300",
-        "odometry.registration.min_sigma_m=inf",
+        "odometry.registration.point_sigma_m=inf",
         "odometry.registration.voxel_size_m=.inf",
         "odometry.doppler.noise_floor_mps=inf",
         "odometry.doppler.noise_floor_mps=1e300",

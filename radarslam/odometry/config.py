@@ -46,21 +46,13 @@ class RegistrationConfig(StrictModel):
     enabled: bool = True
     voxel_size_m: float = Field(1.0, gt=0, le=1000)
     max_points_per_voxel: int = Field(20, ge=1)
-    #: kiss-icp's iterations: 5 only brings the Doppler-seeded scan onto the right reflectors;
-    #: the point-to-local-mean refinement below does the fine alignment (100 kiss-icp iterations
-    #: cost ~1.5 ms more per frame and gained nothing in front of the refinement).
+    #: kiss-icp's iterations: they bring the Doppler-seeded scan onto the right reflectors; the
+    #: point-to-local-mean refinement below does the fine alignment.
     max_num_iterations: int = Field(5, ge=1)
     convergence_criterion: float = Field(1e-4, gt=0)
-    #: kiss-icp's adaptive threshold (fed our Doppler prediction's deviation) or a fixed sigma.
-    threshold: Literal["adaptive", "fixed"] = "fixed"
-    #: kiss-icp's kernel; correspondences up to 3 sigma. 0.7 (2.1 m) rather than 1.0: the Doppler
-    #: seed is within a few cm, so a wide window only admits wrong matches. Chosen on the bench
-    #: drives (bench/odometry.py, plus a second long drive as a check): it lowered the drift on all
-    #: three together with doppler_cov_scale 8; 0.5 was as good, 1.0 and 1.5 worse.
+    #: kiss-icp's kernel sigma (fixed); correspondences up to 3 sigma. The Doppler seed is within
+    #: a few cm, so a wide window only admits wrong matches.
     fixed_sigma_m: float = Field(0.7, gt=0, le=1000)
-    min_sigma_m: float = Field(0.5, gt=0, le=1000)
-    initial_sigma_m: float = Field(2.0, gt=0, le=1000)
-    min_motion_m: float = Field(0.1, ge=0, le=1000)
     #: Fewer source points than this: registration is skipped, the Doppler motion is used.
     min_source_points: int = Field(15, ge=3)
     #: Floor of the point residual sigma in the alignment covariance.
@@ -71,26 +63,13 @@ class RegistrationConfig(StrictModel):
     mirror_every: int = Field(5, ge=1)
     #: Gauss-Newton iterations on point-to-local-mean residuals after kiss-icp (0 = off; see
     #: ScanToMapRegistration._refine): kiss-icp's nearest-point cost is nearly flat in yaw inside
-    #: the noisy clouds of radar returns, so the registration kept the Doppler prediction's yaw
-    #: error. 5 iterations: drift 0.191 -> 0.167 % (city), 0.664 -> 0.347 % (long drive),
-    #: 0.243 -> 0.251 % (second long drive), ATE and RPE 10 m lower on all three. Each iteration
-    #: is one correspondence search; with the extrapolation below 3 do what 5 plain ones did.
+    #: the noisy clouds of radar returns. Only source points whose ``line_neighbors`` nearest
+    #: map points all lie within the correspondence distance take part: at the edge of the map
+    #: the neighbours lie behind the point and their mean would pull the scan back.
     refine_iterations: int = Field(3, ge=0)
-    #: Largest Aitken extrapolation of a refinement step (1 = plain Gauss-Newton). The local-mean
-    #: target moves with the point, so plain steps shrink geometrically (by ~0.78 each on the
-    #: city) and 5 of them covered ~70 % of the way; extrapolating along the repeated step
-    #: reaches the fixed point. Drift, 5 plain -> 3 extrapolated (bench drives, per scene): city
-    #: 0.129 -> 0.129 %, long 0.187 -> 0.163 %, held-out long (seed 7) 0.203 -> 0.188 %.
+    #: Largest Aitken extrapolation of a refinement step (1 = plain Gauss-Newton): the local-mean
+    #: target moves with the point, so plain steps shrink geometrically.
     refine_max_extrapolation: float = Field(8.0, ge=1.0)
-    #: The refinement uses only source points whose ``line_neighbors`` nearest map points all lie
-    #: within the correspondence distance. A point with fewer lies at the edge of the map (far
-    #: ahead, or a newly seen object), where its neighbours are all on the side the vehicle came
-    #: from and their mean pulls the scan back: on a map built from ground-truth poses, front-radar
-    #: points at 90-100 m sit 0.26 m ahead of their neighbours' mean on average, points with 1-4
-    #: neighbours 0.05-0.08 m, complete neighbourhoods 0.007 m. Per-scene ATE, 8 long scenes:
-    #: 0.153 -> 0.114 m (seed 0), 0.119 -> 0.104 m (seed 11); paths 0.041 -> 0.036 % and
-    #: 0.053 -> 0.045 % short. False: every point with at least one neighbour (before).
-    refine_complete_neighborhoods: bool = True
 
 
 class CalibrationConfig(StrictModel):

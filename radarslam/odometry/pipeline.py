@@ -301,17 +301,12 @@ class RadarOdometry:
             max_points_per_voxel=r.max_points_per_voxel,
             max_num_iterations=r.max_num_iterations,
             convergence_criterion=r.convergence_criterion,
-            threshold=r.threshold,
             fixed_sigma_m=r.fixed_sigma_m,
-            min_sigma_m=r.min_sigma_m,
-            initial_sigma_m=r.initial_sigma_m,
-            min_motion_m=r.min_motion_m,
             point_sigma_m=r.point_sigma_m,
             line_neighbors=r.line_neighbors,
             mirror_every=r.mirror_every,
             refine_iterations=r.refine_iterations,
             refine_max_extrapolation=r.refine_max_extrapolation,
-            refine_complete_neighborhoods=r.refine_complete_neighborhoods,
         )
 
     # --- input checks -------------------------------------------------------------------------
@@ -495,8 +490,7 @@ class RadarOdometry:
                 )
             elif not first:
                 status = "skipped"
-            deviation = invert(predicted) @ pose if not first else None
-            reg.update(frame_down, pose, deviation)
+            reg.update(frame_down, pose)
         elif reg is not None and not first:
             status = "skipped"
         t3 = time.perf_counter()

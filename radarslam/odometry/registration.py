@@ -53,47 +53,27 @@ class ScanToMapRegistration:
         max_points_per_voxel: int,
         max_num_iterations: int,
         convergence_criterion: float,
-        threshold: str,
         fixed_sigma_m: float,
-        min_sigma_m: float,
-        initial_sigma_m: float,
-        min_motion_m: float,
         point_sigma_m: float,
         line_neighbors: int,
         mirror_every: int,
         refine_iterations: int = 0,
         refine_max_extrapolation: float = 1.0,
-        refine_complete_neighborhoods: bool = False,
     ):
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
-        from kiss_icp.threshold import AdaptiveThreshold, FixedThreshold
 
         self.voxel_size_m = voxel_size_m
         self.max_range_m = max_range_m
-        self.min_sigma_m = min_sigma_m
+        self.sigma_m = fixed_sigma_m
         self.point_sigma_m = point_sigma_m
         self.line_neighbors = line_neighbors
         self.mirror_every = mirror_every
         self.refine_iterations = refine_iterations
         self.refine_max_extrapolation = refine_max_extrapolation
-        self.refine_complete_neighborhoods = refine_complete_neighborhoods
         self.map = VoxelHashMap(voxel_size_m, max_range_m, max_points_per_voxel)
         # One thread: deterministic, and the machines this runs on are shared.
         self.registration = Registration(max_num_iterations, convergence_criterion, 1)
-        if threshold == "fixed":
-            self.threshold = FixedThreshold(fixed_sigma_m)
-        else:
-
-            class _Cfg:  # the minimal shape AdaptiveThreshold reads from a KISSConfig
-                class adaptive_threshold:
-                    initial_threshold = initial_sigma_m
-                    min_motion_th = min_motion_m
-
-                class data:
-                    max_range = max_range_m
-
-            self.threshold = AdaptiveThreshold(_Cfg)
         self._mirror = None
         self._mirror_age = 0
 
@@ -110,7 +90,7 @@ class ScanToMapRegistration:
         return source, frame
 
     def sigma(self) -> float:
-        return max(float(self.threshold.get_threshold()), self.min_sigma_m)
+        return float(self.sigma_m)
 
     def align(self, source: np.ndarray, initial_guess: np.ndarray) -> RegistrationResult:
         sigma = self.sigma()
@@ -128,10 +108,8 @@ class ScanToMapRegistration:
         cov, matched, rms = self._covariance(source, pose, 3.0 * sigma)
         return RegistrationResult(pose, cov, len(source), matched, rms, sigma)
 
-    def update(self, frame_points: np.ndarray, world_from_ego: np.ndarray, deviation=None) -> None:
-        """Add ego-frame points at the pose; feed kiss-icp's threshold the model deviation."""
-        if deviation is not None:
-            self.threshold.update_model_deviation(deviation)
+    def update(self, frame_points: np.ndarray, world_from_ego: np.ndarray) -> None:
+        """Add ego-frame points at the pose."""
         if len(frame_points):
             self.map.update(frame_points, planar(world_from_ego))
             self._mirror_age += 1
@@ -155,8 +133,8 @@ class ScanToMapRegistration:
         ``1 / (1 - rho)``, the sum of that geometric tail, capped at
         ``refine_max_extrapolation``; a step that turns back (``rho <= 0``) is taken as is.
 
-        With ``refine_complete_neighborhoods`` only points with all ``line_neighbors`` map points
-        inside the correspondence distance take part: at the edge of the map (far ahead, a newly
+        Only points with all ``line_neighbors`` map points inside the correspondence distance
+        take part: at the edge of the map (far ahead, a newly
         seen object) the neighbours lie on the side the vehicle came from, and their mean would
         pull the scan back along the track.
         """
@@ -168,7 +146,6 @@ class ScanToMapRegistration:
         from radarslam.odometry.registration_kernels import refine_sums
 
         pb = np.ascontiguousarray(source[:, :2])
-        complete = bool(self.refine_complete_neighborhoods)
         s2 = sigma**2
         previous = None
         for _ in range(self.refine_iterations):
@@ -177,7 +154,7 @@ class ScanToMapRegistration:
             # Bounded query: much cheaper than plain k-NN where the map is sparse.
             dist, idx = tree.query(pw, k, max_dist)
             used, sw, hxt, hyt, htt, gx, gy, gt = refine_sums(
-                pb, pw, dist, idx, cloud, max_dist, complete, s2, np.ascontiguousarray(rot)
+                pb, pw, dist, idx, cloud, max_dist, s2, np.ascontiguousarray(rot)
             )
             if used < 3:
                 return pose

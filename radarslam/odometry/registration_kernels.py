@@ -16,8 +16,9 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def refine_sums(pb, pw, dist, idx, cloud, max_dist, complete, s2, rot):
-    """Geman-McClure-weighted normal equations of point-to-local-mean residuals.
+def refine_sums(pb, pw, dist, idx, cloud, max_dist, s2, rot):
+    """Geman-McClure-weighted normal equations of point-to-local-mean residuals, over the points
+    whose ``k`` nearest map points all lie within ``max_dist``.
 
     Returns (used points, sw, hxt, hyt, htt, gx, gy, gt): H = [[sw, 0, hxt], [0, sw, hyt],
     [hxt, hyt, htt]], g = [gx, gy, gt] (see ScanToMapRegistration._refine)."""
@@ -25,27 +26,16 @@ def refine_sums(pb, pw, dist, idx, cloud, max_dist, complete, s2, rot):
     used = 0
     sw = hxt = hyt = htt = gx = gy = gt = 0.0
     for p in range(m):
-        cnt = 0
+        if not dist[p, k - 1] < max_dist:  # sorted: the k-th is the farthest
+            continue
         mx = 0.0
         my = 0.0
-        if complete:
-            if not dist[p, k - 1] < max_dist:  # sorted: the k-th is the farthest
-                continue
-            for j in range(k):
-                mx += cloud[idx[p, j], 0]
-                my += cloud[idx[p, j], 1]
-            cnt = k
-        else:
-            for j in range(k):
-                if dist[p, j] < max_dist:
-                    mx += cloud[idx[p, j], 0]
-                    my += cloud[idx[p, j], 1]
-                    cnt += 1
-            if cnt == 0:
-                continue
+        for j in range(k):
+            mx += cloud[idx[p, j], 0]
+            my += cloud[idx[p, j], 1]
         used += 1
-        rx = pw[p, 0] - mx / cnt
-        ry = pw[p, 1] - my / cnt
+        rx = pw[p, 0] - mx / k
+        ry = pw[p, 1] - my / k
         rbx = rx * rot[0, 0] + ry * rot[1, 0]  # body frame, R^T r
         rby = rx * rot[0, 1] + ry * rot[1, 1]
         w = s2 / (s2 + rx * rx + ry * ry)
