@@ -133,20 +133,6 @@ class LoopDetectionConfig(StrictModel):
     #: A street is often driven the other way by a session that joins the map only later (on
     #: the long-scene benchmark, scene-0003 against scene-0002): "map" never searched it there.
     reversed_targets: Literal["map", "other_groups"] = "other_groups"
-    #: Rotation-invariant candidates (ScanContext, radarslam.slam.scancontext_candidates) for
-    #: key frames of sessions outside the map that AutoPlace did not close: they can find streets
-    #: the map drove the other way round, which AutoPlace's heading-bound image does not.
-    #: Every ``scancontext_every``-th key frame (each search costs a global registration, ~80 ms),
-    #: from the ``local_map_neighbors``-th on (the query's local map must be whole). Off by
-    #: default: on the demo it links the reversed drive (recall 0.84 -> 1.00, 128 of 128 loops
-    #: correct) but costs 11.9x -> 8.8x real time; on the long-scene benchmark it links nothing
-    #: more and costs 11.2x -> 7.8x (docs/results.md). The turned AutoPlace search does better
-    #: for less: on seed 33 ScanContext's best match is a true reversed revisit about as often
-    #: as chance (0-5 % of key frames, turned AutoPlace 12 %).
-    scancontext_search: bool = False
-    scancontext_every: int = Field(2, ge=1)
-    #: Ring-key nearest neighbours re-ranked by the column-shift distance.
-    scancontext_ring_candidates: int = Field(25, ge=1)
     #: A new session joins the map only after this many loops agree on where it is: placed by
     #: each loop, the loops' key frames land within ``link_consistency_m`` of each other (and
     #: the headings within ``link_consistency_deg``). Along a straight street the global search

@@ -31,7 +31,7 @@
 
 Where each part lives: the odometry side and its processes in :mod:`radarslam.slam.feed`; the
 sessions, groups and key frames in :mod:`radarslam.slam.state`; the candidate sources (2c, 2e,
-2f and ScanContext) in :mod:`radarslam.slam.proposers`; the verifier variants and predictions
+2f) in :mod:`radarslam.slam.proposers`; the verifier variants and predictions
 (2d) in :mod:`radarslam.slam.verification`; votes, confirmations and merges in
 :mod:`radarslam.slam.linking`; factors into the graph (2b, 2g) in :mod:`radarslam.slam.insertion`;
 the result in :mod:`radarslam.slam.result`. This module holds them together.
@@ -90,7 +90,6 @@ from radarslam.slam.proposers import (
     Proposal,
     ProximityProposer,
     RecognitionProposer,
-    ScanContextProposer,
     TurnedProposer,
 )
 from radarslam.slam.result import SlamResult, SlamTimings, assemble_result
@@ -145,15 +144,11 @@ class SlamPipeline:
             cfg, self.state, self.verification, self.insertion, self._catch_up
         )
         self._proximity = ProximityProposer(cfg, self.state)
-        self.scancontext = None
-        if cfg.loops.enabled and cfg.loops.scancontext_search:
-            self.scancontext = ScanContextProposer(cfg, self.state, self.timings)
         #: Asked in this order for every key frame; each one after the first only proposes
         #: when nothing closed the key frame yet (ScanContext still stores it).
         self.proposers: list[CandidateProposer] = [
             RecognitionProposer(cfg, self.state, lambda: self.recognizer, self.timings),
             TurnedProposer(cfg, self.state, lambda: self.recognizer, self.timings),
-            *([self.scancontext] if self.scancontext is not None else []),
             self._proximity,
         ]
         self._recognizer = recognizer

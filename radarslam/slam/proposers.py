@@ -1,7 +1,7 @@
 """Loop-candidate proposers: where a key frame may have been before.
 
 Every proposer answers :meth:`CandidateProposer.propose` with the candidates the key frame is to
-be verified against, in order; the pipeline asks them in turn (recognition, turned, ScanContext,
+be verified against, in order; the pipeline asks them in turn (recognition, turned,
 proximity), telling each whether an earlier one closed a loop already, and reports back to each
 whether one of its own candidates was accepted (:meth:`CandidateProposer.settle`).
 """
@@ -174,46 +174,6 @@ class TurnedProposer:
     def settle(self, session, kf, accepted):
         if self._searched == kf.key:
             session.reversed_misses = 0 if accepted else session.reversed_misses + 1
-
-
-class ScanContextProposer:
-    """For a session outside the map when nothing closed the key frame yet: the best
-    rotation-invariant candidate among the other groups' key frames, verified by the global
-    search (``loops.scancontext_search``). Every key frame is stored for later queries."""
-
-    def __init__(self, config: SlamConfig, state: MapState, timings: SlamTimings) -> None:
-        from radarslam.slam.scancontext_candidates import ScanContextCandidates
-
-        self.config, self.state, self.timings = config, state, timings
-        self.database = ScanContextCandidates(config.loops.scancontext_ring_candidates)
-
-    def propose(self, session, kf, cloud, closed):
-        cfg = self.config
-        t0 = time.perf_counter()
-        context = self.database.describe(kf.cloud_xy_ego)
-        candidates = []
-        if (
-            not closed
-            and not self.state.groups[session.group].in_map
-            and kf.key.index >= cfg.key_frames.local_map_neighbors
-            and kf.key.index % cfg.loops.scancontext_every == 0
-            and kf.key.index - session.last_loop_kf > cfg.loops.min_key_frames_between_loops
-        ):
-            group, sessions = session.group, self.state.sessions
-            candidates = self.database.query(
-                kf.cloud_xy_ego,
-                lambda key: sessions[key.session].group != group,
-                k=1,
-                context=context,
-            )
-        self.database.add(kf.key, kf.cloud_xy_ego, context)
-        self.timings.place_recognition_s += time.perf_counter() - t0
-        return [
-            Proposal(self.state.key_frame(c.key), c.distance, "scancontext") for c in candidates
-        ]
-
-    def settle(self, session, kf, accepted):
-        pass
 
 
 class ProximityProposer:

@@ -657,24 +657,6 @@ def test_proximity_search_within_one_session_skips_its_recent_past(reader, scene
         assert kfs[q].timestamp_us - kfs[c].timestamp_us >= 4.0e6
 
 
-def test_scancontext_candidates_search_only_sessions_outside_the_map(reader, scenes, recognizer):
-    cfg = SlamConfig()
-    cfg.loops.scancontext_search = True
-    cfg.loops.scancontext_every = 2
-    pipeline = SlamPipeline(reader, cfg, recognizer=recognizer(), progress=False)
-    res = pipeline.run(scenes)
-    first, second = scenes
-    searched = [lp for lp in res.loops if lp.source == "scancontext"]
-    assert searched, "the second session starts outside the map and searches"
-    for lp in searched:
-        assert lp.query.session == second and lp.candidate.session == first
-        assert lp.query.index >= cfg.key_frames.local_map_neighbors
-        assert lp.query.index % 2 == 0
-        assert lp.reason and (lp.reason == "ok") == lp.accepted
-    # every key frame of the run is in the database, whether it searched or not
-    assert len(pipeline.scancontext.database) == res.timings.key_frames
-
-
 def test_reversed_search_queries_turned_images_of_sessions_outside_the_map(
     reader, scenes, recognizer
 ):
