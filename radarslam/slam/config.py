@@ -92,11 +92,6 @@ class LoopDetectionConfig(StrictModel):
     #: clutter in (all verifiers filtered: 72 wrong loops), and so were the confirmations'
     #: constraint ratios (filtered: 2 sessions fewer linked), so confirmations keep every point.
     proximity_min_neighbors: int | None = Field(2, ge=0)
-    #: ICP stopping tolerance for proximity registrations. 1e-3 halves their time (21 -> 11 ms
-    #: on 145 city cases) but on the whole city subset accepted 605 instead of 611 loops (recall
-    #: 0.925 vs 0.934) without a measurable gain in throughput, since the odometry process is the
-    #: bottleneck when pipelined; hence the global search's 1e-4.
-    proximity_icp_relative_tolerance: float = Field(1e-4, gt=0.0)
     #: Between two sessions already in the map, a verified loop that moves the query farther than
     #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
     map_consistency_m: float = Field(3.0, gt=0.0)
@@ -157,13 +152,6 @@ class LoopDetectionConfig(StrictModel):
     weak_vote_max_inlier_rmse_m: float = Field(0.62, gt=0.0)
     weak_vote_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
     weak_link_min_votes: int = Field(4, ge=2)
-    #: Outside the map (sessions linked to each other but not to the map) no graph corrects
-    #: the placements, while both odometry chains drift from where the sessions were linked:
-    #: a verification's guess then chains from the query session's latest loop (with the
-    #: candidate's session if there is one) over a short span of odometry. On seed 21 the
-    #: placement's guess let proximity ICP follow the drift into 2.1-2.6 m errors (4 of 689
-    #: loops); chained, every loop is correct, the largest error 0.65 m. False: the placement.
-    guess_from_last_loop: bool = True
     #: Confirmation of a lone vote. A loop between two groups that links nothing yet predicts
     #: where the query's session lies in the other group; up to ``confirm_max_checks`` key
     #: frames of that session (earlier ones first, then later ones as they arrive), at least

@@ -58,7 +58,7 @@ other side. The merged placement is the mean of the agreeing votes: each vote er
 and proximity ICP inherits the placement's error along a street, where the geometry barely
 constrains it. For the same reason, inside a group outside the map (no graph corrects it there)
 a prediction chains from the session's latest loop rather than from the link's placement, which
-both sessions' odometry drifts away from (``loops.guess_from_last_loop``).
+both sessions' odometry drifts away from.
 """
 
 from __future__ import annotations

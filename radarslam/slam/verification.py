@@ -61,7 +61,6 @@ class Verifiers:
                 "refine_top_k": 1,
                 "max_range_m": cfg.loops.proximity_max_range_m,
                 "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
-                "icp_relative_tolerance": cfg.loops.proximity_icp_relative_tolerance,
             }
         )
         # Lone votes are confirmed from their prediction the same way, but on every point: the
@@ -99,7 +98,7 @@ class Verification:
 
     def note_loop(self, record: LoopCandidate) -> None:
         """An accepted loop between two sessions of one group: later guesses outside the map
-        chain from it (``loops.guess_from_last_loop``)."""
+        chain from it."""
         self._last_loop[(record.query.session, record.candidate.session)] = record
         self._last_loop[(record.query.session, None)] = record
 
@@ -112,7 +111,7 @@ class Verification:
         if qs.group != cs.group:
             return None
         last = self._last_loop.get((qs.name, cs.name)) or self._last_loop.get((qs.name, None))
-        if not qs.inserted and last is not None and self.config.loops.guess_from_last_loop:
+        if not qs.inserted and last is not None:
             # Outside the map no graph corrects the placements, and both odometry chains drift
             # from where the sessions were linked: chain from the query session's latest loop
             # (with the candidate's session if there is one) over a short span of odometry.

@@ -777,8 +777,7 @@ def test_a_recognizer_that_already_holds_places_is_refused(reader, recognizer):
         SlamPipeline(reader, SlamConfig(), recognizer=rec, progress=False)
 
 
-@pytest.mark.parametrize("enabled", [True, False])
-def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
+def test_outside_the_map_guesses_chain_from_the_latest_loop(reader):
     # Sessions B and C are linked to each other (not to the map) with a placement 3 m off where
     # B's odometry has drifted by now; B's latest loop, against C, was measured exactly. The
     # guess for B's newest key frame against C's must chain from that loop, not the placement.
@@ -786,7 +785,6 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
     from radarslam.slam.state import KeyFrame
 
     cfg = SlamConfig()
-    cfg.loops.guess_from_last_loop = enabled
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
     for name in ("A", "B", "C"):
         pipeline.start_session(name)
@@ -811,10 +809,10 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader, enabled):
     pipeline.verification.note_loop(LoopCandidate(b0.key, c0.key, 0, 0, 0.0, True, "ok", measured))
     truth = invert(c1.odometry_pose) @ c_from_b_true @ b1.odometry_pose
     guess = pipeline.verification.guess(b1, c1)
-    if enabled:
-        np.testing.assert_allclose(guess, truth, atol=1e-9)
-    else:  # the placement's 3 m
-        assert np.linalg.norm(guess[:2, 3] - truth[:2, 3]) == pytest.approx(3.0)
+    np.testing.assert_allclose(guess, truth, atol=1e-9)
+    # the link's placement alone would be 3 m off
+    placed = invert(pipeline.state.pose_in_group(c1)) @ pipeline.state.pose_in_group(b1)
+    assert np.linalg.norm(placed[:2, 3] - truth[:2, 3]) == pytest.approx(3.0)
 
 
 def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit(reader, scenes):
