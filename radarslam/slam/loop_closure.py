@@ -12,8 +12,8 @@ from one initial guess is not enough. :class:`LoopVerifier` therefore
    within ``search_radius_m``) places the query;
 3. refines the ``refine_top_k`` best hypotheses by ICP (coarse then fine correspondence distance;
    ``backend``: ``grid``, open3d's point-to-point iterations on the compiled neighbour grid of
-   :mod:`radarslam.neighbors`, the same poses at a third of open3d's CPU time; ``open3d``
-   itself; or small_gicp) and keeps the one with the highest fitness;
+   :mod:`radarslam.neighbors`, the same poses at a third of open3d's CPU time; or ``open3d``
+   itself) and keeps the one with the highest fitness;
 4. accepts when fitness, inlier RMSE and grid overlap all pass their thresholds, and derives the
    loop's information matrix from the point-to-point Hessian of the final correspondences.
 
@@ -55,7 +55,7 @@ class LoopVerifierConfig(StrictModel):
     # 596/777 correct and 42/588 wrong registrations; the SLAM pipeline rejects the wrong ones
     # that remain by consistency (two agreeing loops to link a session, the map's prediction
     # once linked). 1 m voxels and 30 deg headings are ~3x faster than 0.5 m / 15 deg.
-    backend: Literal["grid", "open3d", "small_gicp"] = "grid"
+    backend: Literal["grid", "open3d"] = "grid"
     voxel_size_m: float = Field(1.0, gt=0, le=1000)
     min_points: int = Field(30, ge=3)
     heading_step_deg: float = Field(30.0, gt=0, le=360)
@@ -383,10 +383,8 @@ class LoopVerifier:
                     cfg.icp_relative_tolerance,
                     cfg.max_iterations,
                 )
-            elif cfg.backend == "open3d":
-                pose = self.icp_open3d(src, c, pose, max_corr)
             else:
-                pose = self.icp_small_gicp(src, c, pose, max_corr)
+                pose = self.icp_open3d(src, c, pose, max_corr)
             pose = _planar(pose)
         return pose
 
@@ -418,21 +416,6 @@ class LoopVerifier:
             ),
         )
         return np.asarray(res.transformation, dtype=np.float64)
-
-    def icp_small_gicp(self, q, c, init, max_corr) -> np.ndarray:
-        import small_gicp
-
-        res = small_gicp.align(
-            np.column_stack([c, np.zeros(len(c))]),
-            np.column_stack([q, np.zeros(len(q))]),
-            init_T_target_source=init,
-            registration_type="ICP",
-            downsampling_resolution=self.config.voxel_size_m,
-            max_correspondence_distance=max_corr,
-            num_threads=1,
-            max_iterations=self.config.max_iterations,
-        )
-        return np.asarray(res.T_target_source, dtype=np.float64)
 
     def _score(self, q, c, pose, max_corr, tree=None):
         if tree is None:

@@ -19,9 +19,8 @@ with ``pose_type="pose3"`` they are embedded into 6x6 with tight z / roll / pitc
 
 Robust kernels and iSAM2: a robust loop factor that arrives while drift is large stays down-weighted
 in iSAM2's cached linearisation, so :meth:`optimize_batch` (LM from the iSAM2 estimate, then LM with
-a redescending Geman-McClure kernel on the loops from the better of two starts, optionally followed
-by GNC with the odometry and priors as known inliers) should run at the end of a run;
-:meth:`estimate` returns whichever solve is newest.
+a redescending Geman-McClure kernel on the loops from the better of two starts) should run at
+the end of a run; :meth:`estimate` returns whichever solve is newest.
 """
 
 from __future__ import annotations
@@ -57,13 +56,6 @@ class BatchConfig(StrictModel):
     absolute_error_tol: float = Field(1e-5, ge=0)
 
 
-class GncConfig(StrictModel):
-    enabled: bool = False
-    loss: Literal["tls", "gm"] = "tls"
-    inlier_probability: float = Field(0.99, gt=0, lt=1)
-    max_iterations: int = Field(100, ge=1)
-
-
 class PoseGraphConfig(StrictModel):
     pose_type: Literal["pose2", "pose3"] = "pose2"
     incremental: bool = True  # feed iSAM2 on every update(); False: only batch solves
@@ -76,8 +68,7 @@ class PoseGraphConfig(StrictModel):
     loop_inlier_chi2: float = Field(11.345, gt=0)
     isam2: Isam2Config = Isam2Config()
     batch: BatchConfig = BatchConfig()
-    gnc: GncConfig = GncConfig()
-    # A second batch solve with a redescending kernel on the loops (before GNC, if both are on).
+    # A second batch solve with a redescending kernel on the loops.
     # A Cauchy loop still pulls with a force that falls off only as 1 / error, so hundreds of
     # false loops tens of metres long add up; Geman-McClure's falls off as 1 / error^3. It is
     # non-convex, so it starts from both the first solve's result and the estimate before it
@@ -154,7 +145,6 @@ class PoseGraph:
         self._new_graph = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._new_has_loop = False
-        self._inlier_factor_indices: list[int] = []  # priors + odometry (GNC known inliers)
         self._loops: list[_LoopRecord] = []
         self._odometry_edges: list[tuple[NodeKey, NodeKey, np.ndarray, np.ndarray]] = []
         self._isam = None
@@ -263,12 +253,10 @@ class PoseGraph:
         cls = self._g.BetweenFactorPose3 if self._pose3 else self._g.BetweenFactorPose2
         return cls(ka, kb, self._to_gtsam(a_from_b), noise)
 
-    def _add_factor(self, factor, inlier: bool) -> int:
+    def _add_factor(self, factor) -> int:
         index = self._graph.size()
         self._graph.add(factor)
         self._new_graph.add(factor)
-        if inlier:
-            self._inlier_factor_indices.append(index)
         return index
 
     def _add_node(self, key: NodeKey, world_from_ego: np.ndarray) -> None:
@@ -304,7 +292,7 @@ class PoseGraph:
         )
         cov = np.diag(np.square(np.asarray(sigmas, dtype=np.float64)))
         self._add_factor(
-            self._prior_factor(self.gtsam_key(key), pose, self._noise_from_covariance(cov)), True
+            self._prior_factor(self.gtsam_key(key), pose, self._noise_from_covariance(cov))
         )
         return key
 
@@ -330,7 +318,7 @@ class PoseGraph:
         factor = self._between_factor(
             self.gtsam_key(ki), self.gtsam_key(kj), rel, self._noise_from_covariance(cov)
         )
-        self._add_factor(factor, True)
+        self._add_factor(factor)
         self._odometry_edges.append((ki, kj, rel, cov))
         return kj
 
@@ -356,7 +344,7 @@ class PoseGraph:
             raise ConfigError(f"pose graph: unknown robust kernel {kind!r}")
         noise = self._robust(self._noise_from_information(info), kind)
         index = self._add_factor(
-            self._between_factor(self.gtsam_key(key_a), self.gtsam_key(key_b), rel, noise), False
+            self._between_factor(self.gtsam_key(key_a), self.gtsam_key(key_b), rel, noise)
         )
         self._loops.append(_LoopRecord(key_a, key_b, rel, info, index))
         self._new_has_loop = True
@@ -414,9 +402,9 @@ class PoseGraph:
             return self._from_gtsam(est)
         return self._from_gtsam(self._value(self._initial, k))
 
-    def optimize_batch(self, use_gnc: bool | None = None) -> dict[NodeKey, np.ndarray]:
-        """Levenberg-Marquardt on the whole graph from the newest estimate (then GNC if enabled);
-        returns :meth:`estimate`."""
+    def optimize_batch(self) -> dict[NodeKey, np.ndarray]:
+        """Levenberg-Marquardt on the whole graph from the newest estimate, then the
+        redescending solve; returns :meth:`estimate`."""
         self.update()
         g = self._g
         t0 = time.perf_counter()
@@ -431,17 +419,6 @@ class PoseGraph:
         self.last_batch_iterations = int(opt.iterations())
         if self.config.final_robust != "none" and self._loops:
             result = self._redescending_solve((start, result), p)
-        gnc = self.config.gnc.enabled if use_gnc is None else use_gnc
-        if gnc and self._loops:
-            gp = g.GncLMParams(p)
-            gp.setKnownInliers(list(self._inlier_factor_indices))
-            if self.config.gnc.max_iterations != 100:  # gtsam warns on any explicit change
-                gp.setMaxIterations(self.config.gnc.max_iterations)
-            gp.setLossType(g.GncLossType.TLS if self.config.gnc.loss == "tls" else g.GncLossType.GM)
-            gnc_opt = g.GncLMOptimizer(self._graph, result, gp)
-            gnc_opt.setInlierCostThresholdsAtProbability(self.config.gnc.inlier_probability)
-            result = gnc_opt.optimize()
-            self.last_gnc_weights = np.asarray(gnc_opt.getWeights())
         self._batch_result = result
         self._newest = "batch"
         self.last_batch_time_s = time.perf_counter() - t0
