@@ -117,34 +117,25 @@ class FusionConfig(StrictModel):
     gate_chi2: float = Field(16.27, gt=0)
     #: After this many consecutive rejections ICP is accepted again (re-localise in the map).
     max_consecutive_rejections: int = Field(10, ge=1)
-    #: The point-to-line Hessian treats matches as independent and the map as exact; both are
-    #: false (map points carry the scan's noise, neighbouring matches are correlated, the map
-    #: drifts with the poses that built it). 4 (2x the sigma) with the point-to-local-mean
-    #: refinement: key-frame NEES 1.7 / 3.3 / 3.7 for 3 dof on the bench drives (16 before the
-    #: refinement; with it 16 made them 0.8-1.8, over-conservative, at about the same drift).
+    #: Scale of the registration covariance: the point-to-line Hessian treats matches as
+    #: independent and the map as exact, and both are false (map points carry the scan's noise,
+    #: neighbouring matches are correlated, the map drifts with the poses that built it).
     icp_cov_scale: float = Field(4.0, gt=0)
-    #: The Doppler fit's residual covariance is heavy-tailed against the truth (mean normalised
-    #: squared error ~2 per axis on the synthetic city, median ~0.7), and its yaw-rate errors are
+    #: Scale of the Doppler fit's residual covariance: its errors are heavy-tailed and
     #: correlated from frame to frame (a target set seen for several frames), which a per-frame
-    #: covariance cannot express. 8 (was 4) weights the registration more: lower drift on the
-    #: bench drives (with fixed_sigma_m 0.7), key-frame NEES still ~1.5-3.7 for 3 dof.
+    #: covariance cannot express; a larger scale weights the registration more.
     doppler_cov_scale: float = Field(8.0, gt=0)
     #: Extra ICP variance along this frame's predicted motion, as a fraction of its length (sigma =
     #: fraction x step; None = off), applied while the Doppler fit is valid. Scan-to-map matching
-    #: is biased along the direction of travel: the local map is dense behind the scan and sparse
-    #: ahead, so nearest points and local means pull the scan back. Fused as is, ICP shortened the
-    #: along-track motion by 0.11-0.15 % on long drives, while the Doppler speed was unbiased
-    #: (scale 1.0000). Loop closure cannot remove such a scale error. With 1.0, the along-track
-    #: step comes from Doppler and the lateral and yaw corrections from ICP. That gives scale
-    #: 0.9997 and drift 0.179 -> 0.146 % (city) and 0.246 -> 0.219 % (long drive). 0.3 and 3 gave
-    #: the same results.
+    #: is biased along the direction of travel (the local map is dense behind the scan and
+    #: sparse ahead, so nearest points and local means pull the scan back), while the Doppler
+    #: speed is not: with 1.0 the along-track step comes from Doppler and the lateral and yaw
+    #: corrections from ICP.
     icp_along_track_sigma_fraction: float | None = Field(1.0, gt=0, le=1000)
     #: Standard deviation added to every Doppler twist (forward m/s, lateral m/s, rad/s), after
-    #: the scaling above. On real radar the fit's residual covariance misses errors that persist
+    #: the scaling above: on real radar the fit's residual covariance misses errors that persist
     #: across frames (velocities quantised at 0.25 m/s, one target set seen for several frames,
-    #: mounting errors). Key-frame NEES on the five real nuScenes scenes (3 dof, 0.5 s motions):
-    #: 18 without a floor, 8.6 with (0.1, 0.1, 0.02), 5.7 with (0.2, 0.1, 0.02); pooled ATE
-    #: 0.143 -> 0.137 m between the last two; synthetic city NEES 1.5.
+    #: mounting errors).
     twist_sigma_floor: Triple = (0.2, 0.1, 0.02)
     #: Random walk of the twist between Doppler fits, (m/s, m/s, rad/s) per sqrt(second): covers
     #: acceleration while the radars fire at different times within a frame.

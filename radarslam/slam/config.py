@@ -21,11 +21,8 @@ class KeyFrameConfig(StrictModel):
     #: Key-frame gate: a nuScenes key frame (sample) becomes a SLAM key frame only once the
     #: vehicle has moved ``min_travel_m`` or turned ``min_turn_deg`` since the previous one, or
     #: ``max_interval_s`` (None: never) has passed. The motion and covariance between two key
-    #: frames cover the samples passed over. 0 (the default): every sample is a key frame.
-    #: A quarter of the benchmark's samples are taken standing still, and each costs a descriptor
-    #: and a verification: at 1 m the benchmark ran at 10.3x instead of 8.4x, but fewer sessions
-    #: joined the map (2 of 8; 0.2 m: 6 of 8), because some were linked only through a key frame
-    #: taken while waiting, a new look at the place (radar detections flicker). docs/results.md.
+    #: frames cover the samples passed over. 0: every sample is a key frame (a gate is faster,
+    #: but links fewer sessions: key frames taken while standing are new looks at a place).
     min_travel_m: float = Field(0.0, ge=0.0)
     min_turn_deg: float = Field(5.0, gt=0.0)
     max_interval_s: float | None = Field(2.0, gt=0.0)
@@ -35,11 +32,8 @@ class KeyFrameConfig(StrictModel):
     #: The candidate's neighbours in its verification local map: "centred" (both sides),
     #: "past" (earlier ones only, as for the query), or "past_if_reversed": past when the map
     #: (or odometry) predicts a revisit the other way round, centred otherwise. Static-looking
-    #: clutter follows each drive's path; a turned query's past key frames lie where the
-    #: candidate's future ones do, so centred maps overlap two paths in opposite lanes and the
-    #: registration pulls them together (benchmark: reversed loops 0.14 m off to the side on
-    #: average; past_if_reversed alone: ATE ratio 0.33 -> 0.27, recall 0.96 -> 0.90; "past"
-    #: for every candidate linked 2 groups fewer; docs/results.md).
+    #: clutter follows each drive's path, so centred maps of a turned revisit overlap two paths
+    #: in opposite lanes and the registration pulls them together.
     candidate_map: Literal["centred", "past", "past_if_reversed"] = "past_if_reversed"
     #: Which dynamic-point removal cleans the key-frame clouds: the odometry's joint Doppler fit
     #: of every frame (free: it is already computed) or AutoPlace's DPR run again per sweep
@@ -56,12 +50,8 @@ class LoopDetectionConfig(StrictModel):
     #: Place-recognizer preset (accumulation / DPR / image / RCSHR settings) matching the model.
     recognizer_config: str | None = "place_recognition/recognizer_default.yaml"
     num_candidates: int = Field(3, ge=1, le=50)
-    #: Candidates farther than this in descriptor space (unit vectors: 0..2) are not verified.
-    #: Each candidate past the gate costs a registration search. Calibrated on the demo city for
-    #: the first shipped checkpoint: 0.85 kept 37 of 42 true revisits (< 9 m) and none of 138
-    #: others. Re-checked for the two-stage checkpoint (all 160 candidates of a demo run without
-    #: the gate): 0.85 keeps 51 of 59 true revisits and 5 of 101 others, 0.7 keeps 49 and 1; the
-    #: verification rejects the others either way. None: verify every candidate.
+    #: Candidates farther than this in descriptor space (unit vectors: 0..2) are not verified:
+    #: each one verified costs a registration search. None: verify every candidate.
     max_descriptor_distance: float | None = Field(0.85, gt=0.0)
     #: Key frames of the same session closer in time than this are never candidates.
     exclude_recent_s: float = Field(30.0, ge=0.0)
@@ -79,18 +69,15 @@ class LoopDetectionConfig(StrictModel):
     proximity_radius_m: float | None = Field(10.0, gt=0.0)
     #: Proximity candidates verified per key frame (nearest first, one per other session).
     proximity_candidates: int = Field(1, ge=1, le=10)
-    #: Proximity verification starts from the map's prediction, so it can afford to look only at
-    #: points within this range (4x cheaper than whole 200 m radar maps) and a lower tight-fitness
-    #: threshold than the global search (on the synthetic city: 144 of 150 proximity candidates
-    #: accepted, none wrong, vs 122 with the global thresholds on whole maps).
+    #: Proximity verification starts from the map's prediction, so it looks only at points
+    #: within this range (None: all) and uses a lower tight-fitness threshold than the global
+    #: search.
     proximity_max_range_m: float | None = Field(60.0, gt=0.0)
     proximity_min_tight_fitness: float = Field(0.08, ge=0.0, le=1.0)
     #: Proximity registrations drop points with fewer than this many others within 0.5 m in
-    #: their local map (the verifier's ``min_neighbors``; None: the verifier's setting): the
-    #: clutter above is single returns, a reflector's are repeated. Benchmark, this alone:
-    #: median loop error 0.17 -> 0.12 m. Only here: the global thresholds were tuned with the
-    #: clutter in (all verifiers filtered: 72 wrong loops), and so were the confirmations'
-    #: constraint ratios (filtered: 2 sessions fewer linked), so confirmations keep every point.
+    #: their local map (the verifier's ``min_neighbors``; None: the verifier's setting): clutter
+    #: is single returns, a reflector's are repeated. Global registrations and confirmations
+    #: keep every point (their thresholds were set with the clutter in).
     proximity_min_neighbors: int | None = Field(2, ge=0)
     #: Between two sessions already in the map, a verified loop that moves the query farther than
     #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
@@ -100,43 +87,28 @@ class LoopDetectionConfig(StrictModel):
     #: needs the costly global search over headings and translations).
     unlinked_candidates_per_key_frame: int = Field(1, ge=1)
     #: Turned AutoPlace candidates, for streets a session drives the other way round from the
-    #: map. AutoPlace's image is drawn in the vehicle's frame, so its own query never proposes
-    #: them: on the seed-33 city its best match is such a revisit for 1 % of reversed key frames,
-    #: and for 12 % with the image sequence turned by 180 deg about the radar (the far field,
-    #: which only the forward radar reaches, stays on the wrong side). Every
-    #: ``reversed_every``-th key frame of a session outside the map that closed nothing else
-    #: queries other sessions' key frames with its turned sequence (``reversed_targets``); the
-    #: best match goes to the translation search over headings within
-    #: ``reversed_heading_range_deg`` of a half turn (one ICP refinement), then to the usual
-    #: tests and session linking. Seed 33: recall 0.628 -> 0.797, 4 instead of 1 sessions in the
-    #: map, all 814 loops correct; demo 0.84 -> 1.00. On the long-scene benchmark it links
-    #: sessions only together with ``reversed_targets: other_groups`` and confirmed lone votes
-    #: (``confirm_*``; docs/results.md). Every 6th key frame (then the
-    #: backoff below): every 8th left the demo's reversed drive unlinked, every 4th cost the
-    #: benchmark more time (docs/results.md).
-    #: False: off.
+    #: map. AutoPlace's image is drawn in the vehicle's frame, so its own query rarely proposes
+    #: them. Every ``reversed_every``-th key frame of a session outside the map that closed
+    #: nothing else queries other sessions' key frames (``reversed_targets``) with its image
+    #: sequence turned by 180 deg; the best match goes to the translation search over headings
+    #: within ``reversed_heading_range_deg`` of a half turn, then to the usual tests and session
+    #: linking. False: off.
     reversed_search: bool = True
     reversed_every: int = Field(6, ge=1)
     #: After this many reversed searches of a session without an accepted loop its interval
     #: doubles, and after twice as many doubles again (at most 4x): a session that has not met
-    #: the map the other way round for a while is likely elsewhere, and each search costs a
-    #: turned image sequence and a registration (about 0.2 s here). None: a fixed interval.
+    #: the map the other way round for a while is likely elsewhere. None: a fixed interval.
     reversed_backoff_searches: int | None = Field(8, ge=1)
     reversed_heading_range_deg: float = Field(60.0, gt=0, le=360)
     #: Which key frames the turned query may return: "other_groups", those of every session
-    #: not yet linked to the query's, or "map", only those of sessions already in the map.
-    #: A street is often driven the other way by a session that joins the map only later (on
-    #: the long-scene benchmark, scene-0003 against scene-0002): "map" never searched it there.
+    #: not yet linked to the query's, or "map", only those of sessions already in the map (a
+    #: street is often driven the other way by a session that joins the map only later).
     reversed_targets: Literal["map", "other_groups"] = "other_groups"
     #: A new session joins the map only after this many loops agree on where it is: placed by
     #: each loop, the loops' key frames land within ``link_consistency_m`` of each other (and
     #: the headings within ``link_consistency_deg``). Along a straight street the global search
-    #: can align a look-alike stretch metres off, with good fitness; proximity loops then
-    #: inherit the offset. Correct vote pairs disagree by 0.03-0.66 m on three long runs. On the
-    #: held-out one (seed 7) 3 m let a loop 2.7 m off link a session with two 0.5 and 1.0 m off
-    #: (precision 0.992: it and 5 proximity loops > 2 m off); 1.5 m leaves it out (precision
-    #: 1.000, recall 0.933 -> 0.974), 2 m does not: a thin margin (docs/results.md). The tuning
-    #: runs are unchanged.
+    #: can align a look-alike stretch metres off with good fitness, and proximity loops would
+    #: inherit the offset.
     link_min_consistent_loops: int = Field(2, ge=1)
     link_consistency_m: float = Field(1.5, gt=0.0)
     link_consistency_deg: float = Field(10.0, gt=0.0)
@@ -144,10 +116,9 @@ class LoopDetectionConfig(StrictModel):
     #: or inlier-RMSE test, and by little (tight fitness >= ``weak_vote_min_tight_fitness``,
     #: RMSE <= ``weak_vote_max_inlier_rmse_m``), is kept as a weak vote: a link also forms when
     #: ``weak_link_min_votes`` votes agree, at least one of them a loop that passed every test.
-    #: Across days the tight fitness of right and wrong alignments overlaps at 0.10-0.12 (wrong
-    #: ones reach 0.109); a wrong one rarely agrees with three others. A weak vote must also be
-    #: well conditioned (``weak_vote_min_constraint_ratio``, see LoopVerifierConfig): along a
-    #: straight street look-alike stretches agree with each other. None: off.
+    #: A weak vote must also be well conditioned (``weak_vote_min_constraint_ratio``, see
+    #: LoopVerifierConfig): along a straight street look-alike stretches agree with each other.
+    #: None: off.
     weak_vote_min_tight_fitness: float | None = Field(0.10, ge=0.0, le=1.0)
     weak_vote_max_inlier_rmse_m: float = Field(0.62, gt=0.0)
     weak_vote_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
@@ -159,13 +130,10 @@ class LoopDetectionConfig(StrictModel):
     #: ``proximity_radius_m`` of the other group's key frames, are registered from that
     #: prediction (the proximity settings, ICP only, without ``proximity_min_neighbors``). When
     #: ``confirm_min_loops`` of them are accepted near the prediction (``map_consistency_*``),
-    #: they join the vote and the groups link. Reversed drives rarely yield two independent
-    #: global matches, but once one is found the street's other key frames align from it.
-    #: ICP from a prediction stays where the prediction put it when the geometry allows it:
-    #: along a straight street a vote 7 m off was "confirmed" by key frames of the same street
-    #: (seed 7: constraint ratios 0.71 and 0.79, the vote's 0.46). So the vote and every
-    #: confirmation must be well conditioned (``confirm_min_constraint_ratio``, see
-    #: LoopVerifierConfig.min_constraint_ratio). 0 checks: off.
+    #: they join the vote and the groups link. ICP from a prediction stays where the prediction
+    #: put it along a straight street, so the vote and every confirmation must be well
+    #: conditioned (``confirm_min_constraint_ratio``, see LoopVerifierConfig.min_constraint_ratio).
+    #: 0 checks: off.
     confirm_max_checks: int = Field(4, ge=0)
     confirm_min_loops: int = Field(2, ge=1)
     confirm_spacing_m: float = Field(10.0, gt=0.0)
