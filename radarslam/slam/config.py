@@ -89,10 +89,11 @@ class LoopDetectionConfig(StrictModel):
     #: Turned AutoPlace candidates, for streets a session drives the other way round from the
     #: map. AutoPlace's image is drawn in the vehicle's frame, so its own query rarely proposes
     #: them. Every ``reversed_every``-th key frame of a session outside the map that closed
-    #: nothing else queries other sessions' key frames (``reversed_targets``) with its image
-    #: sequence turned by 180 deg; the best match goes to the translation search over headings
-    #: within ``reversed_heading_range_deg`` of a half turn, then to the usual tests and session
-    #: linking. False: off.
+    #: nothing else queries the key frames of sessions not linked to it yet (not only the
+    #: map's: a street is often driven the other way by a session that joins the map later)
+    #: with its image sequence turned by 180 deg; the best match goes to the translation search
+    #: over headings within ``reversed_heading_range_deg`` of a half turn, then to the usual
+    #: tests and session linking. False: off.
     reversed_search: bool = True
     reversed_every: int = Field(6, ge=1)
     #: After this many reversed searches of a session without an accepted loop its interval
@@ -100,10 +101,6 @@ class LoopDetectionConfig(StrictModel):
     #: the map the other way round for a while is likely elsewhere. None: a fixed interval.
     reversed_backoff_searches: int | None = Field(8, ge=1)
     reversed_heading_range_deg: float = Field(60.0, gt=0, le=360)
-    #: Which key frames the turned query may return: "other_groups", those of every session
-    #: not yet linked to the query's, or "map", only those of sessions already in the map (a
-    #: street is often driven the other way by a session that joins the map only later).
-    reversed_targets: Literal["map", "other_groups"] = "other_groups"
     #: A new session joins the map only after this many loops agree on where it is: placed by
     #: each loop, the loops' key frames land within ``link_consistency_m`` of each other (and
     #: the headings within ``link_consistency_deg``). Along a straight street the global search

@@ -18,9 +18,9 @@
       logged with the reason;
    e. **reversed search**, for a session outside the map when recognition closed nothing: every
       ``reversed_every``-th key frame (less often after repeated misses) queries AutoPlace with
-      its images turned by 180 deg against other sessions' key frames (``reversed_targets``:
-      those not linked to it yet, or only the map's), and the best match is verified
-      over headings near a half turn: how a street driven the other way round is found;
+      its images turned by 180 deg against the key frames of sessions not linked to it yet, and
+      the best match is verified over headings near a half turn: how a street driven the other
+      way round is found;
    f. **proximity search** when nothing else closed the key frame: once the key frame's session is
       linked to others (or revisits its own past), the nearest key frame of its group within
       ``proximity_radius_m`` of the predicted pose is registered from that prediction (ICP only).

@@ -116,7 +116,7 @@ class RecognitionProposer:
 class TurnedProposer:
     """For a session outside the map when nothing closed the key frame yet: AutoPlace queried
     with the key frame's image sequence turned by 180 deg, i.e. as the street looks driven the
-    other way round, against the key frames of ``loops.reversed_targets``; the best match is
+    other way round, against the key frames of sessions not linked to it yet; the best match is
     verified by the translation search over headings near 180 deg (``loops.reversed_search``).
     It searches every ``reversed_every``-th key frame, less often after repeated misses."""
 
@@ -148,15 +148,10 @@ class TurnedProposer:
         sequence = self.state.sequence(session, cloud, rec.seq_len)
         desc, rcs = rec.describe([turned_cloud(c) for c in sequence])
         sessions = self.state.sessions
-        if cfg.reversed_targets == "map":
+        group = session.group
 
-            def exclude(key: NodeKey) -> bool:
-                return not sessions[key.session].inserted
-        else:
-            group = session.group
-
-            def exclude(key: NodeKey) -> bool:
-                return sessions[key.session].group == group
+        def exclude(key: NodeKey) -> bool:
+            return sessions[key.session].group == group
 
         candidates = rec.query_descriptor(desc, rcs, k=1, exclude=exclude)
         self.timings.place_recognition_s += time.perf_counter() - t0
