@@ -39,3 +39,30 @@ def test_synthetic_slam_preset_turns_off_only_the_real_radar_terms():
     assert fusion == default.odometry.fusion
     rest = {"odometry": default.odometry}
     assert synthetic.model_copy(update=rest) == default
+
+
+#: What slam/fast.yaml changes in slam/synthetic.yaml.
+FAST_KEYS = {
+    "key_frames.min_travel_m": 0.2,
+    "key_frames.max_interval_s": 1.0,
+    "loops.proximity_max_range_m": 40.0,
+}
+
+
+def _leaves(value, prefix=""):
+    """A config's leaf settings as {dotted key: value}."""
+    if hasattr(value, "model_fields"):
+        out = {}
+        for name in type(value).model_fields:
+            out.update(_leaves(getattr(value, name), f"{prefix}{name}."))
+        return out
+    return {prefix.rstrip("."): value}
+
+
+def test_fast_slam_preset_differs_from_synthetic_only_in_its_speed_keys():
+    """slam/fast.yaml is slam/synthetic.yaml with FAST_KEYS changed (its header says what they
+    trade)."""
+    fast = _leaves(load_config(SlamConfig, CONFIG_DIR / "slam" / "fast.yaml"))
+    synthetic = _leaves(load_config(SlamConfig, CONFIG_DIR / "slam" / "synthetic.yaml"))
+    changed = {k: v for k, v in fast.items() if synthetic[k] != v}
+    assert changed == FAST_KEYS
