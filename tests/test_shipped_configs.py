@@ -2,6 +2,7 @@
 so a user reading radarslam/configs/ sees the values a run without --config uses."""
 
 import pytest
+from pydantic import BaseModel
 
 from radarslam.config import CONFIG_DIR, load_config
 from radarslam.eval.evaluate import EvalConfig
@@ -51,7 +52,7 @@ FAST_KEYS = {
 
 def _leaves(value, prefix=""):
     """A config's leaf settings as {dotted key: value}."""
-    if hasattr(value, "model_fields"):
+    if isinstance(value, BaseModel):
         out = {}
         for name in type(value).model_fields:
             out.update(_leaves(getattr(value, name), f"{prefix}{name}."))
