@@ -24,7 +24,7 @@ from radarslam.io.atomic import write_json_atomic, write_text_atomic
 from radarslam.sim.config import SimConfig, load_sim_config
 from radarslam.sim.one_log import _run_log, simulate_log
 from radarslam.sim.planning import LogPlan, _cached_world, _world_for, plan_logs
-from radarslam.sim.radar import NUSCENES_MOUNTS
+from radarslam.sim.radar import NUSCENES_MOUNTS, mounting_errors
 from radarslam.sim.world import drivable_mask
 from radarslam.sim.writer import make_token, static_tables, write_map
 
@@ -74,6 +74,9 @@ class SimulationSummary:
     bytes_written: int
     seconds: float
     per_log: list[dict] = field(default_factory=list)
+    # The simulated vehicle's true deviations from the written calibration, per channel.
+    mounting_yaw_error_deg: dict[str, float] = field(default_factory=dict)
+    timestamp_offset_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def sweeps_per_s(self) -> float:
@@ -199,6 +202,7 @@ def simulate(
         write_json_atomic(path, tables[name], indent=None)
         os.chmod(path, 0o644)  # readable like the radar files (the temp file was 0600)
     stats = [r["stats"] for r in results]
+    errors = mounting_errors(cfg.radar, cfg.seed)
     summary = SimulationSummary(
         dataroot=str(root),
         version=version,
@@ -213,6 +217,8 @@ def simulate(
         bytes_written=_du(root),
         seconds=time.perf_counter() - t_start,
         per_log=stats,
+        mounting_yaw_error_deg={ch: e.yaw_deg for ch, e in errors.items()},
+        timestamp_offset_s={ch: e.timestamp_offset_s for ch, e in errors.items()},
     )
     write_json_atomic(syn / "summary.json", asdict(summary))
     return summary

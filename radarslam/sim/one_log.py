@@ -12,7 +12,14 @@ from radarslam.nuscenes.pcd import pcd_bytes
 from radarslam.sim.config import SimConfig
 from radarslam.sim.ego import TumEgo, canonical_routes, extend_route
 from radarslam.sim.planning import LogPlan, _cached_world
-from radarslam.sim.radar import LABEL_DTYPE, NUSCENES_MOUNTS, RadarModel, SweepWorld, box_scatterers
+from radarslam.sim.radar import (
+    LABEL_DTYPE,
+    NUSCENES_MOUNTS,
+    RadarModel,
+    SweepWorld,
+    box_scatterers,
+    mounting_errors,
+)
 from radarslam.sim.traffic import EGO_START_S, EgoMotion, simulate_traffic
 from radarslam.sim.world import Scatterers, StaticWorld, parked_cars
 from radarslam.sim.writer import calibrated_sensor_record, make_token, pose_record
@@ -130,7 +137,8 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
     # Parked cars are static for the whole log: their scatterers join the static world once.
     car_rng = np.random.default_rng([seed, 707, plan.day])
     parked_sc, _, _, parked_occ = box_scatterers(parked, car_rng)
-    model = RadarModel(cfg.radar)
+    models = {m.channel: RadarModel(cfg.radar, m.channel) for m in mounts}
+    errors = mounting_errors(cfg.radar, seed)
 
     # Sweep clocks: every radar its own period, phase and jitter.
     clocks = {}
@@ -220,17 +228,24 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 continue
             # Key frame per sample: the sweep nearest the sample time.
             key_of = {}
+            t_key = t_sw + errors[ch].timestamp_offset_s
             for i, tsmp in enumerate(t_smp):
-                nearest = int(np.argmin(np.abs(t_sw - tsmp)))
-                if abs(t_sw[nearest] - tsmp) <= 0.6 * cfg.radar.period_s:
+                nearest = int(np.argmin(np.abs(t_key - tsmp)))
+                if abs(t_key[nearest] - tsmp) <= 0.6 * cfg.radar.period_s:
                     key_of[nearest] = i
             # As in nuScenes, a radar's chain in a scene starts with its first key frame.
             if key_of:
                 start = min(key_of)
                 t_sw = t_sw[start:]
                 key_of = {k - start: i for k, i in key_of.items()}
-            ego = ego_fn(t_sw)
-            sxy, syaw, v_s = _sensor_states(ego, (m.x_m, m.y_m), np.deg2rad(m.yaw_deg))
+            # The unit measures at t_sw with its true (perturbed) mounting; the dataset records
+            # the nominal mounting and a timestamp shifted by the unit's offset.
+            err = errors[ch]
+            true_yaw = np.deg2rad(m.yaw_deg + err.yaw_deg)
+            sxy, syaw, v_s = _sensor_states(ego_fn(t_sw), (m.x_m, m.y_m), true_yaw)
+            t_written = t_sw + err.timestamp_offset_s
+            ego = ego_fn(t_written)
+            model = models[ch]
             sd_tok = [
                 make_token(seed, "sample_data", plan.index, j, ch, k) for k in range(len(t_sw))
             ]
@@ -239,9 +254,10 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 if k % chunk == 0:
                     mid = min(k + chunk // 2, len(t_sw) - 1)
                     view = model.chunk_view(static, occ, refl, sxy[mid], float(syaw[mid]))
-                ts_us = plan.start_us + round(t * 1e6)
+                ts_us = plan.start_us + round(t_written[k] * 1e6)
                 boxes = traffic.boxes(float(t))
-                if _in_window(cfg.scenario.empty_windows, float(t), plan.index):
+                dropped = rng.uniform() < cfg.radar.empty_sweep_probability
+                if dropped or _in_window(cfg.scenario.empty_windows, float(t), plan.index):
                     pts = np.zeros(0, dtype=RADAR_DTYPE)
                     labels = np.zeros(0, dtype=LABEL_DTYPE)
                 else:
@@ -252,7 +268,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 label_parts.append(labels)
                 is_key = k in key_of
                 # Non-key sweeps point to the sample nearest in time (as nuScenes does).
-                i_smp = key_of[k] if is_key else int(np.argmin(np.abs(t_smp - t)))
+                i_smp = key_of[k] if is_key else int(np.argmin(np.abs(t_smp - t_written[k])))
                 sample_tok = smp_tok[i_smp]
                 folder = "samples" if is_key else "sweeps"
                 rel = f"{folder}/{ch}/{plan.name}__{ch}__{ts_us}.pcd"

@@ -9,7 +9,7 @@ import numpy as np
 from radarslam.errors import ConfigError
 from radarslam.sim.config import SimConfig
 from radarslam.sim.ego import read_tum
-from radarslam.sim.world import StaticWorld, build_world
+from radarslam.sim.world import StaticWorld, build_world, path_street
 from radarslam.sim.writer import add_days, log_start, make_token
 
 
@@ -46,7 +46,10 @@ def _world_for(cfg: SimConfig) -> tuple[StaticWorld, np.ndarray | None]:
         )
     world = build_world(city, cfg.seed, cfg.traffic.light_cycle_s)
     if tum is not None:
-        world = _carve_corridor(world, tum[:, 1:3], 9.0)
+        # The grid's streets do not follow the path: clear them off it and line the path
+        # itself with a street (facades, furniture, parking) like the city's own.
+        world = _carve_corridor(world, tum[:, 1:3], city.facade_offset_m - 1.0)
+        world = path_street(world, tum[:, 1:3], cfg.seed)
     return world, tum
 
 
@@ -100,7 +103,9 @@ def plan_logs(cfg: SimConfig, duration_s: float | None = None) -> list[LogPlan]:
             reverse = True  # two logs on one route: one drives it the other way round
         if i == sch.n_routes and sch.reverse_fraction > 0:
             reverse = True  # the first revisit of route 0 is in the opposite direction
-        windows, t = [], float(rng.uniform(0.5, 3.0))
+        start = float(rng.uniform(0.5, 3.0))
+        # A given trajectory is covered from its start (its first pose is the scene's).
+        windows, t = [], (0.1 if duration_s is not None else start)
         for _ in range(sch.scenes_per_log):
             end = t + sch.scene_duration_s
             if duration_s is not None and end > duration_s - 0.2:

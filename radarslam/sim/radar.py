@@ -62,6 +62,27 @@ NUSCENES_MOUNTS: tuple[RadarMount, ...] = (
     RadarMount("RADAR_BACK_RIGHT", -0.562, -0.618, 0.53, -176.2, 0.0, 0.0),
 )
 
+
+@dataclass(frozen=True)
+class MountingError:
+    """How one simulated unit differs from its written (nominal) calibration."""
+
+    yaw_deg: float  # true mounting yaw minus the nominal one
+    timestamp_offset_s: float  # written timestamp minus the true measurement time
+
+
+def mounting_errors(cfg: RadarConfig, seed: int) -> dict[str, MountingError]:
+    """Per-channel errors of one simulated vehicle (the same in every log of a dataroot)."""
+    rng = np.random.default_rng([seed, 808])
+    yaw = rng.normal(0.0, cfg.mounting_yaw_std_deg, len(NUSCENES_MOUNTS))
+    dt = rng.normal(0.0, cfg.timestamp_offset_std_s, len(NUSCENES_MOUNTS))
+    given = cfg.mounting_yaw_error_deg or {}
+    return {
+        m.channel: MountingError(float(given.get(m.channel, yaw[i])), float(dt[i]))
+        for i, m in enumerate(NUSCENES_MOUNTS)
+    }
+
+
 #: Per-point ground truth written to the sidecar: object class (``world.CLASS_NAMES``), candidate
 #: kind (real, weak, mirror ghost, double bounce, static clutter, random clutter) and the true
 #: speed over ground of what produced the point (apparent for ghosts).
@@ -72,11 +93,11 @@ REAL, WEAK, MIRROR, DOUBLE, CLUTTER_STATIC, CLUTTER_RANDOM, SIDELOBE = 0, 1, 2, 
 _SELECT_WEIGHT = np.array([4.0, 1.5, 1.5, 1.0, 1.0, 1.0, 1.0])
 # (p of invalid_state 0, other states, their weights) per kind.
 _INVALID = {
-    REAL: (0.92, [16, 9, 11, 8, 17], [4, 2, 2, 1, 1]),
-    WEAK: (0.62, [4, 1, 11, 16, 9], [4, 2, 2, 2, 1]),
+    REAL: (0.85, [16, 9, 11, 8, 17], [4, 2, 2, 1, 1]),
+    WEAK: (0.45, [4, 1, 11, 16, 9], [4, 2, 2, 2, 1]),
     MIRROR: (0.40, [6, 16, 11], [5, 1, 1]),
     DOUBLE: (0.30, [14, 6, 12], [2, 2, 1]),
-    CLUTTER_STATIC: (0.45, [4, 1, 11, 9, 16, 3, 15], [5, 3, 3, 2, 3, 1, 1]),
+    CLUTTER_STATIC: (0.15, [4, 1, 11, 9, 16, 3, 15], [5, 3, 3, 2, 3, 1, 1]),
     CLUTTER_RANDOM: (0.2, [1, 4, 11, 16, 12, 14], [3, 3, 2, 2, 1, 1]),
     SIDELOBE: (0.45, [11, 16, 9, 4, 17], [3, 3, 2, 2, 1]),
 }
@@ -148,7 +169,7 @@ def box_scatterers(boxes: Boxes, rng: np.random.Generator):
                 normal,
                 np.deg2rad(np.tile(_CAR_PTS[:, 4], len(idx))),
                 np.tile(_CAR_PTS[:, 5], len(idx)),
-                np.full(m, 0.75),
+                np.full(m, 0.9),
                 np.full(m, 0.05),
             )
         )
@@ -201,8 +222,12 @@ class SweepWorld:
 
 
 class RadarModel:
-    def __init__(self, cfg: RadarConfig):
+    """One unit: the shared radar configuration plus its channel's sensitivity and clutter."""
+
+    def __init__(self, cfg: RadarConfig, channel: str | None = None):
         self.cfg = cfg
+        self.gain_db = float(cfg.channel_gain_db.get(channel, 0.0)) if channel else 0.0
+        self.clutter_scale = float(cfg.channel_clutter_scale.get(channel, 1.0)) if channel else 1.0
         self.bin_w = np.deg2rad(0.25)
         self.lim = np.deg2rad(cfg.near_fov_deg + 1.0)
         self.n_bins = int(np.ceil(2 * self.lim / self.bin_w))
@@ -371,10 +396,11 @@ class RadarModel:
         strong = np.flatnonzero((rcs > 8.0) & (np.hypot(pos[:, 0], pos[:, 1]) < 35.0))
         dbl = strong[rng.uniform(0, 1, len(strong)) < cfg.double_bounce_probability]
         # Clutter / low-quality clusters.
-        n_cl = int(rng.poisson(cfg.clutter_rate * (1.0 - cfg.sidelobe_fraction)))
+        clutter_rate = cfg.clutter_rate * self.clutter_scale
+        n_cl = int(rng.poisson(clutter_rate * (1.0 - cfg.sidelobe_fraction)))
         cpos, cvel, crcs, ckind = self._clutter(n_cl, v_sensor, rng)
         # Sidelobe echoes: the range and Doppler of a real return at a wrong azimuth.
-        n_sl = int(rng.poisson(cfg.clutter_rate * cfg.sidelobe_fraction)) if len(pos) else 0
+        n_sl = int(rng.poisson(clutter_rate * cfg.sidelobe_fraction)) if len(pos) else 0
         if n_sl:
             src = rng.integers(0, len(pos), n_sl)
             r_src = np.hypot(pos[src, 0], pos[src, 1])
@@ -438,7 +464,7 @@ class RadarModel:
             in_far, cfg.far_gain_db - 3.0 * (az / np.deg2rad(cfg.far_fov_deg)) ** 2, -np.inf
         )
         g_near = np.where(r <= self._reach(az), g_near, -np.inf)
-        return rcs + path + np.maximum(g_near, g_far)
+        return rcs + path + np.maximum(g_near, g_far) + self.gain_db
 
     def _mirror_ghosts(self, refl, sensor_xy, rot, pos, v_rel, v_sensor, rcs, rng):
         cfg = self.cfg
@@ -489,7 +515,7 @@ class RadarModel:
 
     def _clutter(self, n, v_sensor, rng):
         cfg = self.cfg
-        far = rng.uniform(0, 1, n) < 0.45
+        far = rng.uniform(0, 1, n) < cfg.clutter_far_fraction
         az = np.where(
             far,
             rng.uniform(-1, 1, n) * np.deg2rad(cfg.far_fov_deg),
@@ -520,6 +546,8 @@ class RadarModel:
         )
         rm = np.maximum(r + rng.normal(0, 1, n) * sig_r, 0.3)
         am = az + rng.normal(0, 1, n) * sig_a
+        wild_az = rng.uniform(0, 1, n) < noise.azimuth_outlier_fraction
+        am = am + wild_az * rng.normal(0, np.deg2rad(noise.azimuth_outlier_std_deg), n)
         x, y = rm * np.cos(am), rm * np.sin(am)
         if noise.position_quantum_m > 0:
             q = noise.position_quantum_m
@@ -533,6 +561,8 @@ class RadarModel:
         up = np.column_stack([-u[:, 1], u[:, 0]])
         vr = (1.0 + noise.doppler_scale_error) * np.einsum("ij,ij->i", u, v_rel)
         vr = vr + rng.normal(0, noise.doppler_std_mps, n)
+        wild_v = rng.uniform(0, 1, n) < noise.doppler_outlier_fraction
+        vr = vr + wild_v * rng.normal(0, noise.doppler_outlier_std_mps, n)
         vt = np.einsum("ij,ij->i", up, v_rel) + rng.normal(0, noise.tangential_std_mps, n)
         v_raw = vr[:, None] * u + vt[:, None] * up
         if noise.velocity_quantum_mps > 0:

@@ -363,7 +363,7 @@ class _CityBuilder:
                 normal,
                 lobe=np.deg2rad(10.0),
                 spec=rng.uniform(5.0, 18.0, n),
-                p_scale=rng.uniform(0.45, 1.0, n),
+                p_scale=rng.uniform(0.8, 1.0, n),
             )
         )
 
@@ -460,7 +460,7 @@ class _CityBuilder:
         )
         xy = a + s[:, None] * u + right * side
         self.parts.append(
-            _make(xy, rng.normal(7.0, 4.0, len(xy)), POLE, p_scale=rng.uniform(0.6, 0.95, len(xy)))
+            _make(xy, rng.normal(7.0, 4.0, len(xy)), POLE, p_scale=rng.uniform(0.8, 1.0, len(xy)))
         )
         if rng.uniform() < cfg.tree_street_fraction:
             s = np.arange(clear, length - clear, cfg.tree_spacing_m)
@@ -625,3 +625,75 @@ def drivable_mask(world: StaticWorld, resolution_m: float) -> np.ndarray:
         sub = img[rows[:, None], np.arange(lo[0], hi[0])[None, :]]
         img[rows[:, None], np.arange(lo[0], hi[0])[None, :]] = np.where(dist <= half, 255, sub)
     return img
+
+
+def path_street(
+    world: StaticWorld, path_xy: np.ndarray, seed: int, keep_clear_m: float = 3.5
+) -> StaticWorld:
+    """``world`` plus a street that follows ``path_xy``: facades, street furniture and parking
+    slots on both sides, so a drive along a given trajectory passes the near, repeatable
+    structure a drive along the city's own streets does. Nothing is left within
+    ``keep_clear_m`` of the path (the inside of tight turns)."""
+    from scipy.spatial import cKDTree
+
+    cfg = world.config
+    rng = np.random.default_rng([seed, 111])
+    step = np.linalg.norm(np.diff(path_xy, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    if cum[-1] < 5.0:  # standing still: a short street along x through the poses
+        centre, half = path_xy.mean(0), np.array([25.0, 0.0])
+        path_xy = np.array([centre - half, centre + half])
+        cum = np.array([0.0, 50.0])
+    # Extend the street 40 m beyond both ends: a radar sees ahead and behind the drive.
+    d0 = _unit(path_xy[min(1, len(path_xy) - 1)] - path_xy[0] + 1e-9)
+    d1 = _unit(path_xy[-1] - path_xy[max(len(path_xy) - 2, 0)] + 1e-9)
+    s = np.arange(-40.0, cum[-1] + 40.0 + 1e-9, 15.0)
+    inside = np.clip(s, 0.0, cum[-1])
+    pts = np.column_stack([np.interp(inside, cum, path_xy[:, k]) for k in range(2)])
+    pts = pts + np.minimum(s, 0.0)[:, None] * d0 + np.maximum(s - cum[-1], 0.0)[:, None] * d1
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1.0])
+    pts = pts[keep]
+    b = _CityBuilder(cfg, rng, world.network)
+    slots_xy, slots_yaw = [], []
+    off = cfg.facade_offset_m
+    for a, c in itertools.pairwise(pts):
+        d = _unit(c - a)
+        for right in (-_left(d), _left(d)):
+            b.facade_row(a + right * off, c + right * off, -right)
+            b.street_side(a - d * (off + 2.5), c + d * (off + 2.5), right, rail=False)
+            if rng.uniform() < cfg.parking_edge_fraction:
+                length = float(np.linalg.norm(c - a))
+                sl = np.arange(0.5 * cfg.parking_slot_m, length, cfg.parking_slot_m)
+                slots_xy.append(a + sl[:, None] * d + right * 4.7)
+                slots_yaw.append(np.full(len(sl), float(np.arctan2(d[1], d[0]))))
+    tree = cKDTree(np.vstack([path_xy, pts]))
+    sc = Scatterers.concat(b.parts)
+    sc = sc.subset(tree.query(sc.xy)[0] > keep_clear_m) if len(sc) else sc
+    occ = np.array(b.occluders, dtype=np.float64).reshape(-1, 4)
+    if len(occ):
+        mid = 0.5 * (occ[:, :2] + occ[:, 2:])
+        occ = occ[(tree.query(occ[:, :2])[0] > keep_clear_m) & (tree.query(mid)[0] > keep_clear_m)]
+    sxy = np.concatenate(slots_xy) if slots_xy else np.zeros((0, 2))
+    syaw = np.concatenate(slots_yaw) if slots_yaw else np.zeros(0)
+    ok = tree.query(sxy)[0] > keep_clear_m if len(sxy) else np.zeros(0, bool)
+    sxy, syaw = sxy[ok], syaw[ok]
+    n = len(sxy)
+    p = world.parking
+    parking = ParkingSlots(
+        np.vstack([p.xy, sxy]),
+        np.concatenate([p.yaw, syaw]),
+        np.concatenate([p.long_term, rng.uniform(0, 1, n) < cfg.long_term_parked_fraction]),
+        np.concatenate([p.lt_len, rng.uniform(4.2, 5.3, n)]),
+        np.concatenate([p.lt_wid, rng.uniform(1.75, 2.0, n)]),
+        np.concatenate([p.lt_flip, rng.uniform(0, 1, n) < 0.15]),
+    )
+    return StaticWorld(
+        cfg,
+        world.network,
+        Scatterers.concat([world.scatterers, sc]),
+        np.vstack([world.occluders, occ]),
+        np.vstack([world.reflectors, occ]),
+        parking,
+        world.buildings + b.buildings,
+        world.bounds,
+    )

@@ -100,22 +100,22 @@ def test_statistics_pinned_on_tiny(tiny_dataroot):
     reader = NuScenesRadar(tiny_dataroot, "v1.0-mini", use_cache=False)
     st = dataset_statistics(reader, progress=False)
     c, r, d, p = st.counts, st.redetection, st.doppler, st.points
-    assert (st.num_scenes, st.num_frames, c.num_sweeps) == (2, 230, 1147)
+    assert (st.num_scenes, st.num_frames, c.num_sweeps) == (2, 229, 1147)
     assert (c.mean, c.raw_mean) == (
-        pytest.approx(64.33043, abs=1e-4),
-        pytest.approx(124.25545, abs=1e-4),
+        pytest.approx(41.17698, abs=1e-4),
+        pytest.approx(80.39669, abs=1e-4),
     )
-    assert (c.p10, c.p50, c.p90, c.empty_fraction) == (47.0, 65.0, 80.0, 0.0)
-    assert r.next == pytest.approx(0.35567, abs=1e-4) and r.within == pytest.approx(
-        0.53832, abs=1e-4
+    assert (c.p10, c.p50, c.p90, c.empty_fraction) == (11.0, 43.0, 70.0, 0.0)
+    assert r.next == pytest.approx(0.49305, abs=1e-4) and r.within == pytest.approx(
+        0.73767, abs=1e-4
     )
-    assert r.sources_next == 68313
-    assert d.heading_error_worst_dps == pytest.approx(0.19767, abs=1e-4)
-    assert d.speed_scale == pytest.approx(0.99936, abs=1e-4) and d.valid_fraction == 1.0
-    assert p.range_m["p50"] == pytest.approx(41.687, abs=1e-2)
-    assert (p.rcs_dbsm["p10"], p.rcs_dbsm["p50"], p.rcs_dbsm["p90"]) == (-2.0, 5.0, 14.0)
-    assert p.moving_fraction == pytest.approx(0.06237, abs=1e-4)
-    assert c.per_radar_mean["RADAR_BACK_LEFT"] == pytest.approx(75.690, abs=1e-3)
+    assert r.sources_next == 43190
+    assert d.heading_error_worst_dps == pytest.approx(1.20831, abs=1e-4)
+    assert d.speed_scale == pytest.approx(0.99938, abs=1e-4) and d.valid_fraction == 1.0
+    assert p.range_m["p50"] == pytest.approx(36.157, abs=1e-2)
+    assert (p.rcs_dbsm["p10"], p.rcs_dbsm["p50"], p.rcs_dbsm["p90"]) == (-3.0, 6.0, 16.0)
+    assert p.moving_fraction == pytest.approx(0.07500, abs=1e-4)
+    assert c.per_radar_mean["RADAR_BACK_LEFT"] == pytest.approx(63.852, abs=1e-3)
 
     # independent recount from the files: every sweep of every radar, once
     filt = odometry_inputs()[0]
@@ -176,7 +176,7 @@ def test_stats_command_against_itself(tiny_dataroot, tmp_path):
     data = json.loads(out.read_text())
     assert data["dataroot"] == data["reference"]
     table = {row["key"]: row for row in data["comparison"]}
-    assert table["mean"]["value"] == pytest.approx(64.33043, abs=1e-4)
+    assert table["mean"]["value"] == pytest.approx(41.17698, abs=1e-4)
     assert {row["ratio"] for row in data["comparison"] if row["kind"] != "dB"} == {1.0}
     assert {row["ratio"] for row in data["comparison"] if row["kind"] == "dB"} == {0.0}
     assert "radar_redetect_next.RADAR_FRONT_LEFT" in table

@@ -59,7 +59,7 @@ def test_scenario_missing_radar_empty_window_and_stop(sim_dataroot):
     assert np.all(np.isfinite(traj.poses))
     assert "skipped" in traj.statuses  # the empty window
     a = ate(traj.poses, traj.ground_truth)
-    assert a.rmse_m < 0.3 and a.yaw_rmse_deg < 1.0, a  # pinned: 0.12 m, 0.51 deg
+    assert a.rmse_m < 0.3 and a.yaw_rmse_deg < 1.5, a  # pinned: 0.03 m, 1.07 deg (mounting errors)
     # During the stop (zero-velocity updates) the estimate does not wander off: the registration
     # jitters it by millimetres around a fixed point.
     gt_step = np.linalg.norm(np.diff(traj.ground_truth[:, :2, 3], axis=0), axis=1)

@@ -69,8 +69,12 @@ def test_raw_velocity_has_a_tangential_part(sweeps):
 
 
 def test_ground_truth_pose_is_consistent_with_the_doppler_velocity(tiny_dataroot, sweeps):
-    """Central differences of ego_pose reproduce the sensor velocity the Doppler encodes."""
+    """Central differences of ego_pose reproduce the sensor velocity the Doppler encodes, once
+    the unit's true mounting yaw error (reported in summary.json) is taken into account."""
     root = tiny_dataroot
+    yaw_err = json.loads((root / "synthetic" / "summary.json").read_text())[
+        "mounting_yaw_error_deg"
+    ]
     poses = {p["token"]: p for p in json.loads((root / VERSION / "ego_pose.json").read_text())}
     cal = {
         c["token"]: c for c in json.loads((root / VERSION / "calibrated_sensor.json").read_text())
@@ -93,20 +97,26 @@ def test_ground_truth_pose_is_consistent_with_the_doppler_velocity(tiny_dataroot
             if t[k + 1] - t[k - 1] > 0.2:  # gap between scenes
                 continue
             v_w = (w_s[k + 1, :2, 3] - w_s[k - 1, :2, 3]) / (t[k + 1] - t[k - 1])
-            v_sensor = w_s[k, :2, :2].T @ v_w
-            errs.append(np.linalg.norm(v_sensor - items[k][1]))
+            v_nominal = w_s[k, :2, :2].T @ v_w
+            # The sidecar's velocity is in the true (rotated) sensor frame.
+            a = np.deg2rad(yaw_err[items[k][0]["filename"].split("/")[1]])
+            v_true = np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]) @ v_nominal
+            errs.append(np.linalg.norm(v_true - items[k][1]))
     errs = np.array(errs)
     assert len(errs) > 500
     assert np.median(errs) < 0.03 and errs.max() < 0.3
 
 
 def test_statistics_in_realistic_bands(sweeps):
+    """Bands around the same figures on the real nuScenes mini radar scenes: 41 % of sweeps at
+    the 125-cluster cap, median range 44 m, RCS 5/50/95 % = -4 / 4 / 20 dBsm, invalid_state 0:
+    52 %, ambig_state 3: 84 %, default filters keep 48 %."""
     n = np.array([len(p) for _, p, _ in sweeps])
     assert n.max() <= 125
-    assert np.mean(n == 125) > 0.6
+    assert 0.15 < np.mean(n == 125) < 0.6
     pts = np.concatenate([p for _, p, _ in sweeps])
     r = np.hypot(pts["x"], pts["y"])
-    assert 40 < np.median(r) < 80
+    assert 30 < np.median(r) < 60
     assert 90 < r.max() < 230
     p5, p50, p95 = np.percentile(pts["rcs"], [5, 50, 95])
     assert -9 < p5 < -2 and 1 < p50 < 8 and 11 < p95 < 24
@@ -189,7 +199,7 @@ def test_sidecar_point_labels_match_the_points(tiny_dataroot, sweeps):
     # Static world: compensated Doppler is noise only; moving cars/cyclists: mostly clearly moving.
     assert np.percentile(static_vr, 95) < 0.5
     assert len(moving_vr) > 50 and np.median(moving_vr) > 1.0
-    assert 0.25 < kinds[0] + kinds[1] < 0.6  # real detections
+    assert 0.45 < kinds[0] + kinds[1] < 0.75  # real detections
     assert kinds[2] + kinds[3] > 0.003  # multipath ghosts exist
-    assert 0.35 < kinds[4] + kinds[5] + kinds[6] < 0.72  # clutter and sidelobe clusters
+    assert 0.2 < kinds[4] + kinds[5] + kinds[6] < 0.5  # clutter and sidelobe clusters
     assert kinds[6] > 0.05  # sidelobe echoes of real returns

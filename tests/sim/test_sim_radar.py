@@ -49,7 +49,7 @@ def test_guard_rail_is_specular():
         return _make([40.0 * u], -10.0, GUARDRAIL, normal, lobe=np.deg2rad(3.5), spec=26.0)
 
     assert _detect_rate(model, _world(rail(0.0))) > 0.8  # seen perpendicular: a mirror flash
-    assert _detect_rate(model, _world(rail(0.6))) < 0.2  # 34 deg off: diffuse part only
+    assert _detect_rate(model, _world(rail(0.6))) < 0.3  # 34 deg off: diffuse part only
 
 
 def test_fov_and_range_limits():
@@ -57,7 +57,7 @@ def test_fov_and_range_limits():
     behind = _make([[-20.0, 0.0]], 15.0, POLE)
     outside = _make([[10.0, 30.0]], 15.0, POLE)  # 72 deg off boresight
     far_side = _make([[100.0 * np.cos(0.5), 100.0 * np.sin(0.5)]], 15.0, POLE)
-    far_bore = _make([[160.0, 0.0]], 15.0, POLE)
+    far_bore = _make([[130.0, 0.0]], 15.0, POLE)  # beyond the near scan's 70 m
     assert _detect_rate(model, _world(behind), 50) == 0
     assert _detect_rate(model, _world(outside), 50) == 0
     assert _detect_rate(model, _world(far_side), 50) == 0  # beyond the near scan
@@ -75,6 +75,7 @@ def test_doppler_scale_error_and_exact_compensation(scale):
             tangential_std_mps=0.0,
             velocity_quantum_mps=0.0,
             doppler_scale_error=scale,
+            doppler_outlier_fraction=0.0,
         )
     )
     v_s = np.array([8.0, 0.5])

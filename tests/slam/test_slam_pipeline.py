@@ -198,8 +198,9 @@ def test_session_joins_the_map_once_loops_agree(reader):
         (40.0, 1.0),  # a perceptual-aliasing false loop
         # A look-alike stretch of a straight street: 2.5 m along it, the vote would drag the
         # session (and every proximity loop after the link) with it. Agreement is measured where
-        # the loops are, within link_consistency_m (1.5 m), not at the session origin.
-        (2.5, 0.5),
+        # the loops are, within link_consistency_m (1.5 m), not at the session origin. (The
+        # linked session still drifts by its odometry: 0.28-0.56 m on the tiny preset.)
+        (2.5, 0.8),
     ],
 )
 def test_inconsistent_link_votes_are_rejected(reader, offset_m, max_error_m):

@@ -1,0 +1,259 @@
+"""The simulator's real-radar imperfections: mounting and timing errors of each unit, per-unit
+sensitivity, heavy-tailed noise, dropped sweeps, and the street lining a given trajectory."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from radarslam.errors import ConfigError
+from radarslam.sim.config import RadarConfig, load_sim_config
+from radarslam.sim.generate import simulate
+from radarslam.sim.planning import plan_logs
+from radarslam.sim.radar import NUSCENES_MOUNTS, RadarModel, SweepWorld, mounting_errors
+from radarslam.sim.world import Boxes, Scatterers, StaticWorld, build_world, path_street
+
+VERSION = "v1.0-mini"
+SHORT = ["schedule.scenes_per_log=1", "schedule.scene_duration_s=3.0", "traffic.warmup_s=5.0"]
+
+
+def _table(root: Path, name: str) -> list[dict]:
+    return json.loads((root / VERSION / f"{name}.json").read_text())
+
+
+def test_mounting_errors_are_seeded_per_vehicle_and_can_be_given():
+    cfg = RadarConfig()
+    a, b = mounting_errors(cfg, 3), mounting_errors(cfg, 3)
+    assert a == b
+    assert a != mounting_errors(cfg, 4)
+    yaws = np.array([e.yaw_deg for e in a.values()])
+    assert 0 < np.abs(yaws).max() < 5 * cfg.mounting_yaw_std_deg
+    given = RadarConfig(mounting_yaw_error_deg={"RADAR_FRONT": 1.5}, mounting_yaw_std_deg=0.0)
+    e = mounting_errors(given, 3)
+    assert e["RADAR_FRONT"].yaw_deg == 1.5
+    assert e["RADAR_BACK_LEFT"].yaw_deg == 0.0
+
+
+def test_unknown_channel_in_radar_config_is_one_line():
+    with pytest.raises(ConfigError, match=r"channel_gain_db: unknown channel 'RADAR_TOP'"):
+        load_sim_config("tiny", ["radar.channel_gain_db={RADAR_TOP: -3}"])
+    with pytest.raises(ConfigError, match=r"channel_clutter_scale: RADAR_FRONT must be >= 0"):
+        load_sim_config("tiny", ["radar.channel_clutter_scale={RADAR_FRONT: -1}"])
+
+
+def _static_world_error_m(root: Path, channel: str) -> float:
+    """Median distance from each real static return, placed in the world with the written ego
+    pose and calibration, to the nearest scatterer of the static world (sidecar)."""
+    from scipy.spatial import cKDTree
+
+    from radarslam.geometry import make_transform
+    from radarslam.nuscenes.pcd import read_pcd
+
+    world = np.load(root / "synthetic" / "world.npz")
+    tree = cKDTree(world["scatterer_xy"])
+    z = np.load(next((root / "synthetic" / "logs").glob("*.npz")))
+    off = np.concatenate([[0], np.cumsum(z["n_points"])])
+    sds = {r["token"]: r for r in _table(root, "sample_data")}
+    poses = {r["token"]: r for r in _table(root, "ego_pose")}
+    cals = {r["token"]: r for r in _table(root, "calibrated_sensor")}
+    dist = []
+    for i, tok in enumerate(z["sample_data_token"]):
+        if str(z["channel"][i]) != channel:
+            continue
+        sd = sds[str(tok)]
+        pts = read_pcd(root / sd["filename"])
+        kind = z["point_kind"][off[i] : off[i + 1]]
+        cls = z["point_class"][off[i] : off[i + 1]]
+        m = (kind == 0) & (cls < 6)  # real returns of the static world (not cars)
+        if not m.any():
+            continue
+        ep, cs = poses[sd["ego_pose_token"]], cals[sd["calibrated_sensor_token"]]
+        world_from_sensor = make_transform(ep["translation"], ep["rotation"]) @ make_transform(
+            cs["translation"], cs["rotation"]
+        )
+        p = np.column_stack([pts["x"][m], pts["y"][m], np.zeros(int(m.sum()))]).astype(float)
+        xy = (p @ world_from_sensor[:3, :3].T + world_from_sensor[:3, 3])[:, :2]
+        dist.append(tree.query(xy)[0])
+    return float(np.median(np.concatenate(dist)))
+
+
+def test_written_calibration_is_nominal_and_the_truth_is_rotated(tmp_path):
+    """With a 5 deg mounting error the points are measured in the rotated (true) frame: placed
+    with the written nominal calibration they land metres off the scatterers that made them."""
+    base = [*SHORT, "radar.mounting_yaw_std_deg=0"]
+    exact = simulate("tiny", tmp_path / "exact", progress=False, overrides=base)
+    rotated = simulate(
+        "tiny",
+        tmp_path / "rot",
+        progress=False,
+        overrides=[*base, "radar.mounting_yaw_error_deg={RADAR_FRONT: 5.0}"],
+    )
+    assert rotated.mounting_yaw_error_deg["RADAR_FRONT"] == 5.0
+    assert exact.mounting_yaw_error_deg["RADAR_FRONT"] == 0.0
+    summary = json.loads((tmp_path / "rot" / "synthetic" / "summary.json").read_text())
+    assert summary["mounting_yaw_error_deg"]["RADAR_FRONT"] == 5.0
+    cs_exact = sorted(r["rotation"] for r in _table(tmp_path / "exact", "calibrated_sensor"))
+    cs_rot = sorted(r["rotation"] for r in _table(tmp_path / "rot", "calibrated_sensor"))
+    assert cs_exact == cs_rot
+    e_exact = _static_world_error_m(tmp_path / "exact", "RADAR_FRONT")
+    e_rot = _static_world_error_m(tmp_path / "rot", "RADAR_FRONT")
+    assert e_exact < 0.6
+    assert e_rot > max(1.0, 2.5 * e_exact)
+    # Another unit without an error stays where it was.
+    assert _static_world_error_m(tmp_path / "rot", "RADAR_BACK_LEFT") < 0.6
+
+
+def test_timestamp_offsets_shift_a_units_written_times(tmp_path):
+    common = [*SHORT, "radar.mounting_yaw_std_deg=0"]
+    a = simulate(
+        "tiny",
+        tmp_path / "a",
+        progress=False,
+        overrides=[*common, "radar.timestamp_offset_std_s=0"],
+    )
+    b = simulate(
+        "tiny",
+        tmp_path / "b",
+        progress=False,
+        overrides=[*common, "radar.timestamp_offset_std_s=0.02"],
+    )
+    assert all(v == 0.0 for v in a.timestamp_offset_s.values())
+    for ch, dt in b.timestamp_offset_s.items():
+        ta = {
+            r["timestamp"]
+            for r in _table(tmp_path / "a", "sample_data")
+            if f"/{ch}/" in r["filename"]
+        }
+        tb = {
+            r["timestamp"]
+            for r in _table(tmp_path / "b", "sample_data")
+            if f"/{ch}/" in r["filename"]
+        }
+        shifted = np.sort([t + round(dt * 1e6) for t in ta])
+        gap = np.abs(shifted[None, :] - np.sort(list(tb))[:, None]).min(axis=1)
+        # The same physical sweeps, written dt later (a chain may start one sweep apart).
+        assert np.sum(gap <= 2) >= min(len(ta), len(tb)) - 2, ch
+    # Every ego pose is taken at its written timestamp.
+    poses = {r["token"]: r["timestamp"] for r in _table(tmp_path / "b", "ego_pose")}
+    for r in _table(tmp_path / "b", "sample_data"):
+        assert poses[r["ego_pose_token"]] == r["timestamp"]
+
+
+def test_front_corner_units_are_less_sensitive(tiny_dataroot):
+    sds = _table(tiny_dataroot, "sample_data")
+    side = next((tiny_dataroot / "synthetic" / "logs").glob("*.npz"))
+    z = np.load(side)
+    count = {ch: z["n_points"][z["channel"] == ch].mean() for ch in np.unique(z["channel"])}
+    assert len(sds) == len(z["n_points"])
+    for corner in ("RADAR_FRONT_LEFT", "RADAR_FRONT_RIGHT"):
+        for full in ("RADAR_FRONT", "RADAR_BACK_LEFT", "RADAR_BACK_RIGHT"):
+            assert count[corner] < 0.75 * count[full], (corner, full, count)
+
+
+def _tiny_world():
+    cfg = load_sim_config("tiny")
+    world = build_world(cfg.city, 5)
+    return cfg, world
+
+
+def _sweep_residuals(cfg: RadarConfig, n: int = 40) -> np.ndarray:
+    """Doppler residuals of clutter-free static returns in front of a moving sensor."""
+    rng = np.random.default_rng(0)
+    xs = np.linspace(10, 60, 60)
+    xy = np.column_stack([np.repeat(xs, 3), np.tile([-8.0, 0.0, 8.0], len(xs))])
+    m = len(xy)
+    static = Scatterers(
+        xy,
+        np.full(m, 25.0),
+        np.full(m, 1, np.int8),
+        np.zeros((m, 2)),
+        np.ones(m),
+        np.zeros(m),
+        np.ones(m),
+        np.zeros(m),
+    )
+    world = SweepWorld(static, np.zeros((0, 4)), np.zeros((0, 4)), Boxes.empty())
+    model = RadarModel(cfg)
+    v_s = np.array([10.0, 0.0])
+    out = []
+    for _ in range(n):
+        p = model.sweep(world, np.zeros(2), 0.0, v_s, rng)
+        u = np.column_stack([p["x"], p["y"]]).astype(float)
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        vr = np.einsum("ij,ij->i", u, np.column_stack([p["vx"], p["vy"]]).astype(float))
+        out.append(vr + u @ v_s)
+    return np.concatenate(out)
+
+
+def test_doppler_errors_have_heavy_tails():
+    plain = RadarConfig(
+        clutter_rate=0.0,
+        ghost_probability=0.0,
+        double_bounce_probability=0.0,
+        noise={"doppler_outlier_fraction": 0.0, "velocity_quantum_mps": 0.0},
+    )
+    tailed = plain.model_copy(
+        update={
+            "noise": plain.noise.model_copy(
+                update={"doppler_outlier_fraction": 0.1, "doppler_outlier_std_mps": 1.0}
+            )
+        }
+    )
+    r0, r1 = _sweep_residuals(plain), _sweep_residuals(tailed)
+    # The core is the same, the tail beyond 5 sigma is not.
+    assert abs(np.median(np.abs(r0)) - np.median(np.abs(r1))) < 0.03
+    thr = 5 * plain.noise.doppler_std_mps
+    assert np.mean(np.abs(r0) > thr) < 0.002
+    assert 0.04 < np.mean(np.abs(r1) > thr) < 0.12
+
+
+def test_dropped_sweeps_are_written_empty(tmp_path):
+    s = simulate(
+        "tiny",
+        tmp_path / "d",
+        progress=False,
+        overrides=[*SHORT, "radar.empty_sweep_probability=0.5"],
+    )
+    side = next((tmp_path / "d" / "synthetic" / "logs").glob("*.npz"))
+    n = np.load(side)["n_points"]
+    assert len(n) == s.n_sweeps
+    assert 0.35 < np.mean(n == 0) < 0.65
+
+
+def test_a_given_trajectory_is_lined_with_a_street():
+    cfg, world = _tiny_world()
+    t = np.linspace(0, 1, 200)
+    path = np.column_stack([100 + 300 * t, 150 + 30 * np.sin(3 * t)])
+    lined = path_street(world, path, seed=1, keep_clear_m=3.5)
+    assert isinstance(lined, StaticWorld)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(path)
+    new = lined.scatterers.xy[len(world.scatterers) :]
+    d = tree.query(new)[0]
+    assert len(new) > 50
+    assert d.min() > 3.5
+    # Facades on both sides at the street's facade offset, parking slots along the kerb.
+    off = cfg.city.facade_offset_m
+    assert np.mean(np.abs(d - off) < 3.0) > 0.3
+    slots = lined.parking.xy[len(world.parking.xy) :]
+    assert len(slots) > 0
+    # (slots on the street's extensions past the path's ends lie farther from the path)
+    assert np.mean(np.abs(tree.query(slots)[0] - 4.7) < 1.0) > 0.8
+
+
+def test_trajectory_scene_starts_at_the_first_pose():
+    cfg = load_sim_config("tiny", ["schedule.scenes_per_log=1", "schedule.scene_duration_s=20"])
+    (plan,) = plan_logs(cfg, duration_s=12.0)
+    (start, end) = plan.scene_windows[0]
+    assert start == pytest.approx(0.1)
+    assert end == pytest.approx(11.8)
+    free = plan_logs(cfg)[0].scene_windows[0][0]
+    assert 0.5 <= free <= 3.0
+
+
+def test_nuscenes_mounts_cover_every_channel():
+    assert {m.channel for m in NUSCENES_MOUNTS} == set(mounting_errors(RadarConfig(), 0))
