@@ -4,7 +4,7 @@
                                           # into 2 scenes of 90 s (3.5 km), in data/bench-city-long
     python bench/slam.py --run subset     # the city subset: 8 logs on 2 routes, 32 scenes of 20 s
                                           # (2.5 km), in data/bench-city
-    python bench/slam.py --dataroot D --version v1.0-trainval --preset default   # real data
+    python bench/slam.py --dataroot D --version v1.0-trainval   # real data
 
 The long scenes are the headline: 20 s scenes leave odometry almost nothing to correct, so the
 SLAM / odometry ATE ratio means little on the subset.
@@ -168,10 +168,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--preset",
-        default="synthetic",
-        choices=("synthetic", "fast", "default"),
-        help="SLAM preset, radarslam/configs/slam/<preset>.yaml (synthetic: the synthetic world's; "
-        "fast: the same, faster, slightly lower recall)",
+        default="default",
+        choices=("default", "fast"),
+        help="SLAM preset, radarslam/configs/slam/<preset>.yaml (fast: faster, slightly lower "
+        "recall)",
     )
     ap.add_argument(
         "--set",

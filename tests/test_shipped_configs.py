@@ -24,25 +24,7 @@ def test_shipped_preset_equals_the_model_defaults(relative, model):
     assert load_config(model, CONFIG_DIR / relative) == model()
 
 
-def test_synthetic_slam_preset_turns_off_only_the_real_radar_terms():
-    """slam/synthetic.yaml is slam/default.yaml with the odometry's mounting-yaw states and
-    twist floor off (the simulator has exact calibrations and a clean Doppler)."""
-    synthetic = load_config(SlamConfig, CONFIG_DIR / "slam" / "synthetic.yaml")
-    default = SlamConfig()
-    assert synthetic.odometry.fusion.calibration.yaw_bias_model == "none"
-    assert synthetic.odometry.fusion.twist_sigma_floor == (0.0, 0.0, 0.0)
-    fusion = synthetic.odometry.fusion.model_copy(
-        update={
-            "calibration": default.odometry.fusion.calibration,
-            "twist_sigma_floor": default.odometry.fusion.twist_sigma_floor,
-        }
-    )
-    assert fusion == default.odometry.fusion
-    rest = {"odometry": default.odometry}
-    assert synthetic.model_copy(update=rest) == default
-
-
-#: What slam/fast.yaml changes in slam/synthetic.yaml.
+#: What slam/fast.yaml changes in slam/default.yaml.
 FAST_KEYS = {
     "key_frames.min_travel_m": 0.2,
     "key_frames.max_interval_s": 1.0,
@@ -60,10 +42,10 @@ def _leaves(value, prefix=""):
     return {prefix.rstrip("."): value}
 
 
-def test_fast_slam_preset_differs_from_synthetic_only_in_its_speed_keys():
-    """slam/fast.yaml is slam/synthetic.yaml with FAST_KEYS changed (its header says what they
+def test_fast_slam_preset_differs_from_default_only_in_its_speed_keys():
+    """slam/fast.yaml is slam/default.yaml with FAST_KEYS changed (its header says what they
     trade)."""
     fast = _leaves(load_config(SlamConfig, CONFIG_DIR / "slam" / "fast.yaml"))
-    synthetic = _leaves(load_config(SlamConfig, CONFIG_DIR / "slam" / "synthetic.yaml"))
-    changed = {k: v for k, v in fast.items() if synthetic[k] != v}
+    default = _leaves(load_config(SlamConfig, CONFIG_DIR / "slam" / "default.yaml"))
+    changed = {k: v for k, v in fast.items() if default[k] != v}
     assert changed == FAST_KEYS

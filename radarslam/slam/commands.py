@@ -16,9 +16,9 @@ class Dataset(str, Enum):
     synthetic = "synthetic"
 
 
-#: Named SLAM presets, radarslam/configs/slam/<name>.yaml: real radar, the synthetic world, and
-#: the synthetic world traded a little loop recall for speed.
-SLAM_PRESETS = ("default", "synthetic", "fast")
+#: Named SLAM presets, radarslam/configs/slam/<name>.yaml: the default (real radar and the
+#: synthetic world alike), and the default trading a little loop recall for speed.
+SLAM_PRESETS = ("default", "fast")
 
 
 def _slam_config(
@@ -198,9 +198,8 @@ def run_command(
     config: Annotated[
         Path | None,
         typer.Option(
-            help="SLAM YAML, or a preset: default (real radar), synthetic, or fast (synthetic, "
-            "faster, slightly lower loop recall); default: synthetic with --dataset synthetic, "
-            "default otherwise (radarslam/configs/slam/)."
+            help="SLAM YAML, or a preset: default, or fast (faster, slightly lower loop "
+            "recall); radarslam/configs/slam/."
         ),
     ] = None,
     override: Annotated[
@@ -222,7 +221,7 @@ def run_command(
         override,
         no_loops,
         checkpoint,
-        preset="synthetic" if dataset == Dataset.synthetic else "default",
+        preset="default",
     )
     _check_selection(scenes, location)
     check_results_dir(out)  # before generating or reading any data
@@ -272,7 +271,7 @@ def demo_command(
     from radarslam.slam.outputs import check_results_dir
 
     dataroot = out / "data"
-    cfg = _slam_config(None, override, False, None, preset="synthetic")
+    cfg = _slam_config(None, override, False, None, preset="default")
     results = out / "results"
     check_results_dir(results)  # before generating the data
     version = ensure_synthetic(preset, dataroot, progress)

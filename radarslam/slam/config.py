@@ -109,6 +109,10 @@ class LoopDetectionConfig(StrictModel):
     link_min_consistent_loops: int = Field(2, ge=1)
     link_consistency_m: float = Field(1.5, gt=0.0)
     link_consistency_deg: float = Field(10.0, gt=0.0)
+    #: Agreeing votes count as independent only when their key frames lie this far apart on
+    #: at least one side: a vehicle standing at a light queries the same view again and again,
+    #: and a look-alike place then returns the same wrong match, consistent with itself.
+    link_vote_spacing_m: float = Field(10.0, ge=0.0)
     #: Weak votes. A global registration between two groups that fails only the tight-fitness
     #: or inlier-RMSE test, and by little (tight fitness >= ``weak_vote_min_tight_fitness``,
     #: RMSE <= ``weak_vote_max_inlier_rmse_m``), is kept as a weak vote: a link also forms when

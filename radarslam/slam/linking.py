@@ -137,8 +137,26 @@ class SessionLinker:
             dyaw = abs(se2_distance(t_i, t_j)[1])
             return moved <= cfg.link_consistency_m and dyaw <= cfg.link_consistency_deg
 
+        # Each vote's key frame on side b, in b's frame: with ``at`` (side a), where it looked.
+        at_b = [state.pose_in_group(self._side(v, b))[:2, 3] for v in votes]
+
+        def independent(agree: list[int]) -> list[int]:
+            """The agreeing votes that saw distinct places (full loops first): a vote counts
+            only if, against every vote counted before it, its key frame lies
+            ``link_vote_spacing_m`` away on at least one side."""
+            counted: list[int] = []
+            for j in sorted(agree, key=lambda j: (votes[j].weak, j)):
+                if all(
+                    max(np.hypot(*(at[j] - at[k])), np.hypot(*(at_b[j] - at_b[k])))
+                    >= cfg.link_vote_spacing_m
+                    for k in counted
+                ):
+                    counted.append(j)
+            return counted
+
         def strength(agree: list[int]) -> tuple[int, int]:
-            return sum(not votes[j].weak for j in agree), len(agree)
+            counted = independent(agree)
+            return sum(not votes[j].weak for j in counted), len(counted)
 
         best: list[int] = []
         for i in range(len(votes)):

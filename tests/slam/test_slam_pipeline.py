@@ -152,6 +152,9 @@ def _scripted_pipeline(reader, accept, **loops):
     cfg = SlamConfig()
     cfg.loops.num_candidates = 50
     cfg.loops.min_key_frames_between_loops = 0
+    # The scripted votes come from consecutive key frames against one candidate; the spacing of
+    # independent votes has its own test.
+    cfg.loops.link_vote_spacing_m = 0.0
     for name, value in loops.items():
         setattr(cfg.loops, name, value)
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
@@ -190,6 +193,25 @@ def test_session_joins_the_map_once_loops_agree(reader):
     second = res.sessions[1]
     err = np.linalg.norm(second.slam_poses[:, :2, 3] - second.gt_poses[:, :2, 3], axis=1)
     assert err.max() < 1.0, "the linked session lies on its ground truth"
+
+
+def test_votes_from_one_place_do_not_link_a_session(reader):
+    """Three consecutive key frames of the second session, a few metres apart, all matched to
+    the first session's last key frame: one view seen three times, not three votes. With the
+    spacing the session is linked only once votes come from places apart (here never), without
+    it at once."""
+
+    def accept(pipeline, q, c):
+        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 2) else None
+
+    pipeline = _scripted_pipeline(reader, accept, link_vote_spacing_m=1000.0, confirm_max_checks=0)
+    res = pipeline.run([s.name for s in reader.scenes()])
+    assert len(res.components) == 2
+    assert not [lp for lp in res.loops if lp.accepted and lp.query.session != lp.candidate.session]
+    res = _scripted_pipeline(reader, accept, confirm_max_checks=0).run(
+        [s.name for s in reader.scenes()]
+    )
+    assert len(res.components) == 1
 
 
 @pytest.mark.parametrize(
