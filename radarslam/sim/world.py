@@ -652,11 +652,16 @@ def path_street(
     pts = np.column_stack([np.interp(inside, cum, path_xy[:, k]) for k in range(2)])
     pts = pts + np.minimum(s, 0.0)[:, None] * d0 + np.maximum(s - cum[-1], 0.0)[:, None] * d1
     keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1.0])
-    pts = pts[keep]
+    pts, s = pts[keep], s[keep]
     b = _CityBuilder(cfg, rng, world.network)
     slots_xy, slots_yaw = [], []
     off = cfg.facade_offset_m
-    for a, c in itertools.pairwise(pts):
+    # Cross streets one block apart, as on the city's own streets: open views down them.
+    cross = np.cumsum(rng.uniform(cfg.block_min_m, cfg.block_max_m, int(s[-1] - s[0]) // 50 + 2))
+    cross = s[0] + cross - rng.uniform(0.0, cfg.block_max_m)
+    for k, (a, c) in enumerate(itertools.pairwise(pts)):
+        if np.min(np.abs(cross - 0.5 * (s[k] + s[k + 1]))) < off:
+            continue
         d = _unit(c - a)
         for right in (-_left(d), _left(d)):
             b.facade_row(a + right * off, c + right * off, -right)

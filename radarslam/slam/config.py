@@ -79,6 +79,10 @@ class LoopDetectionConfig(StrictModel):
     #: is single returns, a reflector's are repeated. Global registrations and confirmations
     #: keep every point (their thresholds were set with the clutter in).
     proximity_min_neighbors: int | None = Field(2, ge=0)
+    #: Proximity registrations with a smaller constraint ratio (LoopVerifierConfig: how well the
+    #: matched structure pins the pose in its weakest direction) are rejected; a straight
+    #: street lets ICP slide along it. None: the verifier's ``min_constraint_ratio``.
+    proximity_min_constraint_ratio: float | None = Field(None, ge=0.0, le=1.0)
     #: Between two sessions already in the map, a verified loop that moves the query farther than
     #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
     map_consistency_m: float = Field(3.0, gt=0.0)
