@@ -169,9 +169,8 @@ def main() -> None:
     ap.add_argument(
         "--preset",
         default="default",
-        choices=("default", "fast"),
-        help="SLAM preset, radarslam/configs/slam/<preset>.yaml (fast: faster, slightly lower "
-        "recall)",
+        choices=("default",),
+        help="SLAM preset, radarslam/configs/slam/<preset>.yaml",
     )
     ap.add_argument(
         "--set",

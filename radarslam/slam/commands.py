@@ -16,9 +16,9 @@ class Dataset(str, Enum):
     synthetic = "synthetic"
 
 
-#: Named SLAM presets, radarslam/configs/slam/<name>.yaml: the default (real radar and the
-#: synthetic world alike), and the default trading a little loop recall for speed.
-SLAM_PRESETS = ("default", "fast")
+#: Named SLAM presets, radarslam/configs/slam/<name>.yaml (one for real radar and the synthetic
+#: world alike).
+SLAM_PRESETS = ("default",)
 
 
 def _slam_config(
@@ -197,10 +197,7 @@ def run_command(
     ] = None,
     config: Annotated[
         Path | None,
-        typer.Option(
-            help="SLAM YAML, or a preset: default, or fast (faster, slightly lower loop "
-            "recall); radarslam/configs/slam/."
-        ),
+        typer.Option(help="SLAM YAML, or a preset name (default; radarslam/configs/slam/)."),
     ] = None,
     override: Annotated[
         list[str] | None, typer.Option("--set", help="Config override key.sub=value (repeatable).")
