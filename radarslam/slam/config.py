@@ -117,6 +117,10 @@ class LoopDetectionConfig(StrictModel):
     #: at least one side: a vehicle standing at a light queries the same view again and again,
     #: and a look-alike place then returns the same wrong match, consistent with itself.
     link_vote_spacing_m: float = Field(10.0, ge=0.0)
+    #: At least one of a link's votes must be this well conditioned (constraint ratio, see
+    #: LoopVerifierConfig.min_constraint_ratio): registrations that can slide along a straight
+    #: street agree with each other when they slide together, hundreds of metres off.
+    link_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
     #: Weak votes. A global registration between two groups that fails only the tight-fitness
     #: or inlier-RMSE test, and by little (tight fitness >= ``weak_vote_min_tight_fitness``,
     #: RMSE <= ``weak_vote_max_inlier_rmse_m``), is kept as a weak vote: a link also forms when

@@ -164,6 +164,12 @@ class SessionLinker:
             if strength(agree) > strength(best):
                 best = agree
         strong, total = strength(best)
+        if not any(
+            votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio
+            for j in independent(best)
+            if not votes[j].weak
+        ):
+            return
         weak_link = (
             cfg.weak_vote_min_tight_fitness is not None
             and strong >= 1

@@ -214,6 +214,20 @@ def test_votes_from_one_place_do_not_link_a_session(reader):
     assert len(res.components) == 1
 
 
+@pytest.mark.parametrize(("ratio", "linked"), [(0.65, False), (0.9, True)])
+def test_a_link_needs_one_well_conditioned_vote(reader, ratio, linked):
+    """Agreeing votes that could all slide along a straight street (constraint ratio 0.65)
+    place nothing; the same votes pinned in every direction (0.9) link the session."""
+
+    def accept(pipeline, q, c):
+        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 2) else None
+
+    pipeline = _scripted_pipeline(reader, accept, confirm_max_checks=0)
+    pipeline.verifiers.recognition.constraint_ratio = ratio
+    res = pipeline.run([s.name for s in reader.scenes()])
+    assert (len(res.components) == 1) is linked
+
+
 @pytest.mark.parametrize(
     ("offset_m", "max_error_m"),
     [
