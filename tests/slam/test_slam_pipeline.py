@@ -152,9 +152,6 @@ def _scripted_pipeline(reader, accept, **loops):
     cfg = SlamConfig()
     cfg.loops.num_candidates = 50
     cfg.loops.min_key_frames_between_loops = 0
-    # The scripted votes come from consecutive key frames against one candidate; the spacing of
-    # independent votes has its own test.
-    cfg.loops.link_vote_spacing_m = 0.0
     for name, value in loops.items():
         setattr(cfg.loops, name, value)
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
