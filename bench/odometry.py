@@ -104,6 +104,7 @@ def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import make_odometry
     from radarslam.odometry.config import OdometryConfig
+    from radarslam.odometry.run import second_pass, single_pass, total_calibration
 
     dataroot, version, scenes, overrides = job
     cfg = OdometryConfig.model_validate(apply_overrides(OdometryConfig().model_dump(), overrides))
@@ -119,9 +120,16 @@ def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
         "gt": np.array([f.world_from_ego for f in frames]),
         "read_cpu_ms": read_cpu / len(frames) * 1e3,
     }
+    cal = cfg.fusion.calibration
     for method in METHODS:
-        odo = make_odometry(method, cfg)
+        run_cfg = cfg
         t0 = time.process_time()
+        if method == "ours" and cal.passes > 1 and cal.yaw_bias_model == "mounting":
+            first = make_odometry(method, single_pass(cfg, dict(cfg.mounting_yaw_deg)))
+            for f in frames:
+                first.process(f)
+            run_cfg = second_pass(cfg, first.calibration.as_dict())
+        odo = make_odometry(method, run_cfg)
         res = [odo.process(f) for f in frames]
         out[method + "_cpu_ms"] = (time.process_time() - t0) / len(frames) * 1e3
         out[method] = np.array([r.world_from_ego for r in res])
@@ -131,6 +139,8 @@ def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
             )
         if method == "ours":
             out["calibration"] = odo.calibration.as_dict()
+            if run_cfg is not cfg:
+                out["calibration"] = total_calibration(run_cfg, out["calibration"])
             mounting = out["calibration"].get("mounting_yaw_error_deg")
             if mounting:
                 # The Doppler fit again, with the mounting yaws ours estimated on this segment.

@@ -105,6 +105,11 @@ class CalibrationConfig(StrictModel):
     speed_scale_prior: float = Field(0.0, ge=0, le=1)
     #: Random walk of the speed-scale error per sqrt(second).
     speed_scale_walk: float = Field(0.0, ge=0, le=1)
+    #: 2: a self-calibration pass. ``run_odometry`` runs the scenes once, then again with the
+    #: mounting yaws the first pass estimated applied to every sweep from its first frame (as
+    #: ``mounting_yaw_deg`` does); the filter estimates what is left. Twice the CPU. With
+    #: ``yaw_bias_model: mounting`` only.
+    passes: int = Field(1, ge=1, le=2)
 
 
 class FusionConfig(StrictModel):

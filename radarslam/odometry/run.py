@@ -8,6 +8,7 @@ drives of one log); otherwise the odometry restarts from ``initial_pose`` (a new
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import logging
@@ -19,7 +20,7 @@ import numpy as np
 
 from radarslam.errors import ConfigError, DataError
 from radarslam.odometry.config import OdometryConfig
-from radarslam.types import SceneInfo
+from radarslam.types import RADAR_CHANNELS, SceneInfo
 
 log = logging.getLogger("radarslam.odometry")
 
@@ -172,6 +173,9 @@ def run_odometry(
                 "(its frames would repeat timestamps)"
             )
         seen.add(info.name)
+    cal = config.fusion.calibration
+    if method == "ours" and cal.passes > 1 and cal.yaw_bias_model == "mounting":
+        return _self_calibrated(reader, infos, config, progress, max_frames_per_scene)
     odo = make_odometry(method, config)
     rows: dict[str, list] = {k: [] for k in _ROW_KEYS}
     kf: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -234,6 +238,49 @@ def run_odometry(
         processing_ms=np.asarray(rows["ms"], dtype=np.float64),
         key_frame_motions=kf,
         calibration=odo.calibration.as_dict() if hasattr(odo, "calibration") else None,
+    )
+
+
+def single_pass(config: OdometryConfig, mounting_yaw_deg: dict[str, float]) -> OdometryConfig:
+    """``config`` with one pass and these mounting yaws applied to every sweep."""
+    cal = config.fusion.calibration.model_copy(update={"passes": 1})
+    fusion = config.fusion.model_copy(update={"calibration": cal})
+    return config.model_copy(update={"fusion": fusion, "mounting_yaw_deg": mounting_yaw_deg})
+
+
+def second_pass(config: OdometryConfig, first_calibration: dict | None) -> OdometryConfig:
+    """The self-calibration pass's config: the mounting yaws given in ``config`` plus those the
+    first pass estimated (its ``calibration.as_dict()``), applied from the first frame."""
+    given = dict(config.mounting_yaw_deg)
+    estimated = (first_calibration or {}).get("mounting_yaw_error_deg", {})
+    applied = {ch: given.get(ch, 0.0) + estimated.get(ch, 0.0) for ch in RADAR_CHANNELS}
+    return single_pass(config, applied)
+
+
+def total_calibration(applied: OdometryConfig, residual: dict) -> dict:
+    """The second pass's calibration reported as the vehicle's total mounting error: what was
+    applied plus what the filter found left."""
+    out = dict(residual)
+    left = residual.get("mounting_yaw_error_deg", {})
+    out["mounting_yaw_error_deg"] = {
+        ch: applied.mounting_yaw_deg.get(ch, 0.0) + left.get(ch, 0.0) for ch in RADAR_CHANNELS
+    }
+    out["passes"] = 2
+    return out
+
+
+def _self_calibrated(reader, infos, config, progress, max_frames_per_scene):
+    """Two passes (``fusion.calibration.passes: 2``): the second applies the mounting yaws the
+    first estimated (plus any given ones) to every sweep from the start, so neither the map nor
+    the early Doppler fits carry the error while the filter converges."""
+    kw = {"progress": progress, "max_frames_per_scene": max_frames_per_scene}
+    first = run_odometry(reader, infos, single_pass(config, dict(config.mounting_yaw_deg)), **kw)
+    applied = second_pass(config, first.calibration)
+    second = run_odometry(reader, infos, applied, **kw)
+    return dataclasses.replace(
+        second,
+        calibration=total_calibration(applied, second.calibration or {}),
+        processing_ms=first.processing_ms + second.processing_ms,  # same frames, both passes
     )
 
 

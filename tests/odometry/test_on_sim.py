@@ -123,3 +123,25 @@ def _planar(pose):
     from radarslam.odometry.lie import planar
 
     return planar(pose)
+
+
+def test_self_calibration_pass_applies_the_first_pass_estimate(tiny_dataroot):
+    """``fusion.calibration.passes: 2`` runs the scene again with the mounting yaws the first
+    pass estimated applied to every sweep; the report is the total (applied + what is left).
+    Pinned on the tiny preset (its vehicle's units are mounted 0.1-1.6 deg off): ATE 0.028 ->
+    0.021 m."""
+    from radarslam.odometry.run import second_pass
+
+    reader = NuScenesRadar(tiny_dataroot, "v1.0-mini")
+    scene = reader.scenes()[0].name
+    one = run_odometry(reader, [scene], progress=False)
+    cfg = OdometryConfig.model_validate({"fusion": {"calibration": {"passes": 2}}})
+    two = run_odometry(reader, [scene], cfg, progress=False)
+    assert two.calibration["passes"] == 2 and "passes" not in one.calibration
+    applied = second_pass(cfg, one.calibration).mounting_yaw_deg
+    assert applied == one.calibration["mounting_yaw_error_deg"]
+    assert two.calibration["mounting_yaw_error_deg"] != applied  # plus the second's residual
+    assert len(two.processing_ms) == len(one.processing_ms)
+    a1 = ate(one.poses, one.ground_truth).rmse_m
+    a2 = ate(two.poses, two.ground_truth).rmse_m
+    assert a2 < 0.85 * a1, (a1, a2)
