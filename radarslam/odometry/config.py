@@ -110,6 +110,11 @@ class CalibrationConfig(StrictModel):
     #: ``mounting_yaw_deg`` does); the filter estimates what is left. Twice the CPU. With
     #: ``yaw_bias_model: mounting`` only.
     passes: int = Field(1, ge=1, le=2)
+    #: At every reset (a new scene or segment, each SLAM session) the mounting yaws estimated so
+    #: far are applied to every later sweep, as ``mounting_yaw_deg`` does, and the states start
+    #: again from zero with their covariance kept: the next scene's map and Doppler fits start
+    #: calibrated instead of waiting for the filter. The reported estimate stays the total.
+    fold_at_reset: bool = True
 
 
 class FusionConfig(StrictModel):

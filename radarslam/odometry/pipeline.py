@@ -254,17 +254,39 @@ class RadarOdometry:
         self._calib = np.zeros(n_yaw + 1)
         self._calib_cov = np.diag(np.square([cal.yaw_bias_prior] * n_yaw + [cal.speed_scale_prior]))
         self._calib_q = np.diag(np.square([cal.yaw_bias_walk] * n_yaw + [cal.speed_scale_walk]))
-        self._mounting = {
-            ch: exp_se2(np.array([0.0, 0.0, math.radians(deg)]))
-            for ch, deg in self.config.mounting_yaw_deg.items()
-        }
+        #: Mounting yaws (rad, RADAR_CHANNELS order) folded into the sweeps at resets.
+        self._folded = np.zeros(len(RADAR_CHANNELS))
+        self._mounting = self._mounting_transforms()
         #: Bytes of the ego_from_sensor matrices already checked rigid: the calibration
         #: of a radar repeats in every sweep, so each is checked once, not 5 times a frame.
         self._good_calibrations: set[tuple[str, bytes]] = set()
         self.reset()
 
+    def _mounting_transforms(self) -> dict[str, np.ndarray]:
+        """Per channel, the sensor rotation applied to every sweep: the configured mounting
+        yaws plus those folded in at resets."""
+        given = self.config.mounting_yaw_deg
+        out = {}
+        for i, ch in enumerate(RADAR_CHANNELS):
+            rad = math.radians(given.get(ch, 0.0)) + float(self._folded[i])
+            if ch in given or rad != 0.0:
+                out[ch] = exp_se2(np.array([0.0, 0.0, rad]))
+        return out
+
+    def _fold_calibration(self) -> None:
+        """Apply the estimated mounting yaws to the sweeps from now on and zero the states."""
+        cal = self.config.fusion.calibration
+        n = len(RADAR_CHANNELS)
+        if cal.yaw_bias_model != "mounting" or not cal.fold_at_reset or not self._calib[:n].any():
+            return
+        self._folded = self._folded + self._calib[:n]
+        self._calib[:n] = 0.0
+        self._mounting = self._mounting_transforms()
+
     def reset(self) -> None:
-        """Forget everything (start a new segment)."""
+        """Forget everything (start a new segment); the calibration is kept (and folded into
+        the sweeps with ``fusion.calibration.fold_at_reset``)."""
+        self._fold_calibration()
         self._registration: ScanToMapRegistration | None = None
         self._pose: np.ndarray | None = None
         self._cov = np.zeros((3, 3))
@@ -285,11 +307,16 @@ class RadarOdometry:
         sig = np.sqrt(np.diag(self._calib_cov))
         return DopplerCalibration(
             self.config.fusion.calibration.yaw_bias_model,
-            tuple(float(v) for v in self._calib[:-1]),
+            tuple(float(v) for v in self._calib[:-1] + self._total_offset()),
             tuple(float(v) for v in sig[:-1]),
             float(self._calib[-1]),
             float(sig[-1]),
         )
+
+    def _total_offset(self) -> np.ndarray:
+        """What was folded into the sweeps, per yaw state (zeros unless "mounting")."""
+        n = len(self._calib) - 1
+        return self._folded if n == len(self._folded) else np.zeros(n)
 
     def _new_registration(self) -> ScanToMapRegistration | None:
         r = self.config.registration

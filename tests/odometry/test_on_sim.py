@@ -9,6 +9,7 @@ from typer.testing import CliRunner
 from radarslam.cli import app
 from radarslam.errors import ConfigError, DataError
 from radarslam.eval.metrics import ate
+from radarslam.geometry import invert
 from radarslam.io.trajectory import read_kitti, read_tum
 from radarslam.nuscenes.reader import NuScenesRadar
 from radarslam.odometry.config import OdometryConfig
@@ -145,3 +146,37 @@ def test_self_calibration_pass_applies_the_first_pass_estimate(tiny_dataroot):
     a1 = ate(one.poses, one.ground_truth).rmse_m
     a2 = ate(two.poses, two.ground_truth).rmse_m
     assert a2 < 0.85 * a1, (a1, a2)
+
+
+@pytest.mark.parametrize("fold", [True, False])
+def test_reset_folds_the_estimated_mounting_yaws_into_the_sweeps(tiny_dataroot, fold):
+    """At a reset the mounting yaws estimated so far are applied to the sweeps from then on and
+    the states restart at zero; the reported estimate (the total) is unchanged by the fold."""
+    from radarslam.nuscenes.filters import RadarPointFilter
+    from radarslam.odometry.pipeline import RadarOdometry
+    from radarslam.types import RADAR_CHANNELS
+
+    cfg = OdometryConfig.model_validate({"fusion": {"calibration": {"fold_at_reset": fold}}})
+    odo = RadarOdometry(cfg)
+    reader = NuScenesRadar(tiny_dataroot, "v1.0-mini")
+    pc = cfg.points
+    filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+    frames = list(reader.iter_frames(reader.scenes()[0], filters=filters))
+    for frame in frames:
+        odo.process(frame)
+    before = np.array(odo.calibration.yaw_states)
+    assert np.abs(before).max() > np.radians(0.05)
+    odo.reset()
+    assert np.allclose(odo.calibration.yaw_states, before)
+    if fold:
+        assert set(odo._mounting) == set(RADAR_CHANNELS)
+        for i, ch in enumerate(RADAR_CHANNELS):
+            yaw = np.arctan2(odo._mounting[ch][1, 0], odo._mounting[ch][0, 0])
+            assert yaw == pytest.approx(before[i])
+        # the sweeps of the next frame come out turned by the folded yaws
+        turned = odo._recalibrated(frames[0])
+        for ch, sw in turned.sweeps.items():
+            d = invert(frames[0].sweeps[ch].ego_from_sensor) @ sw.ego_from_sensor
+            assert np.arctan2(d[1, 0], d[0, 0]) == pytest.approx(before[RADAR_CHANNELS.index(ch)])
+    else:
+        assert odo._mounting == {}
