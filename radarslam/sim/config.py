@@ -14,6 +14,7 @@ from pydantic import Field, model_validator
 
 from radarslam.config import CONFIG_DIR, StrictModel, load_config
 from radarslam.errors import ConfigError
+from radarslam.types import RADAR_CHANNELS
 
 PRESETS: tuple[str, ...] = ("tiny", "demo", "city")
 
@@ -151,8 +152,6 @@ class RadarConfig(StrictModel):
 
     @model_validator(mode="after")
     def _check_channels(self) -> RadarConfig:
-        from radarslam.types import RADAR_CHANNELS
-
         for name in ("channel_gain_db", "channel_clutter_scale", "mounting_yaw_error_deg"):
             for ch in getattr(self, name) or {}:
                 if ch not in RADAR_CHANNELS:

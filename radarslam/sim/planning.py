@@ -103,7 +103,7 @@ def plan_logs(cfg: SimConfig, duration_s: float | None = None) -> list[LogPlan]:
             reverse = True  # two logs on one route: one drives it the other way round
         if i == sch.n_routes and sch.reverse_fraction > 0:
             reverse = True  # the first revisit of route 0 is in the opposite direction
-        start = float(rng.uniform(0.5, 3.0))
+        start = float(rng.uniform(0.5, 3.0))  # drawn either way: later draws stay the same
         # A given trajectory is covered from its start (its first pose is the scene's).
         windows, t = [], (0.1 if duration_s is not None else start)
         for _ in range(sch.scenes_per_log):

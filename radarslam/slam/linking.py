@@ -163,19 +163,20 @@ class SessionLinker:
             agree = [j for j in range(len(votes)) if agree_on(i, j)]
             if strength(agree) > strength(best):
                 best = agree
-        strong, total = strength(best)
-        if not any(
-            votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio
-            for j in independent(best)
-            if not votes[j].weak
-        ):
-            return
+        counted = independent(best)
+        strong = sum(not votes[j].weak for j in counted)
         weak_link = (
             cfg.weak_vote_min_tight_fitness is not None
             and strong >= 1
-            and total >= cfg.weak_link_min_votes
+            and len(counted) >= cfg.weak_link_min_votes
         )
         if strong < cfg.link_min_consistent_loops and not weak_link:
+            return
+        if not any(
+            votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio
+            for j in counted
+            if not votes[j].weak
+        ):
             return
         b_from_a = se2_mean([placements[j] for j in best])  # each vote errs independently
         agreeing = {id(votes[j]) for j in best}
