@@ -158,25 +158,44 @@ class _Interval:
     """Dead-reckoning covariance accumulated since an anchor frame, and the anchor's ICP cov."""
 
     cov: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    #: The turn-rate error common to both sources (fusion.turn_sigma_per_radps), added after
+    #: the interval's registrations are fused in.
+    turn_cov: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    #: Motion error per calibration error over the interval: one calibration error biases every
+    #: frame of it alike, so its share is added once at the end, not per frame.
+    calib_jac: np.ndarray | None = None
     anchor_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
     anchor_icp_cov: np.ndarray | None = None
     anchor_us: int = 0
 
-    def propagate(self, delta: np.ndarray, delta_cov: np.ndarray) -> None:
+    def propagate(
+        self,
+        delta: np.ndarray,
+        delta_cov: np.ndarray,
+        calib_jac: np.ndarray,
+        turn_cov: np.ndarray,
+    ) -> None:
         ad = adjoint_se2(invert(delta))
         self.cov = ad @ self.cov @ ad.T + delta_cov
+        self.turn_cov = ad @ self.turn_cov @ ad.T + turn_cov
+        prev = np.zeros_like(calib_jac) if self.calib_jac is None else self.calib_jac
+        self.calib_jac = ad @ prev + calib_jac
 
     def relative(
-        self, pose: np.ndarray, icp_cov: np.ndarray | None
+        self, pose: np.ndarray, icp_cov: np.ndarray | None, calib_cov: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         motion = invert(self.anchor_pose) @ pose
         cov = self.cov
+        if self.calib_jac is not None:
+            cov = cov + self.calib_jac @ calib_cov @ self.calib_jac.T
         if icp_cov is not None and self.anchor_icp_cov is not None:
             cov = _fuse_cov(cov, self.anchor_icp_cov + icp_cov)
-        return motion, cov
+        return motion, cov + self.turn_cov
 
     def reset(self, pose: np.ndarray, icp_cov: np.ndarray | None, timestamp_us: int) -> None:
         self.cov = np.zeros((3, 3))
+        self.turn_cov = np.zeros((3, 3))
+        self.calib_jac = None
         self.anchor_pose = pose
         self.anchor_icp_cov = icp_cov
         self.anchor_us = timestamp_us
@@ -245,6 +264,7 @@ class RadarOdometry:
         self._q = np.diag(np.square(self.config.fusion.process_noise))
         self._growth = np.diag(self.config.fusion.invalid_doppler_growth)
         self._twist_floor = np.diag(np.square(self.config.fusion.twist_sigma_floor))
+        self._turn_q = np.diag(np.square(self.config.fusion.turn_sigma_per_radps))
         cal = self.config.fusion.calibration
         #: Doppler calibration estimated by the filter, kept across segments (it belongs to the
         #: car): the yaw-rate bias (rad/m or rad/s), or with ``yaw_bias_model: mounting`` the
@@ -531,11 +551,15 @@ class RadarOdometry:
         else:
             rel_cov = delta_cov
         relative = np.eye(4) if first else invert(self._pose) @ pose
+        if not first:
+            turn_rate = abs(0.5 * (self._twist[2] + twist[2]))
+            turn_cov = self._turn_q * (turn_rate**2 * gap_s)
+            rel_cov = rel_cov + turn_cov
 
         # Key-frame interval bookkeeping.
         kf_motion = kf_cov = None
         if not first:
-            self._kf.propagate(relative, delta_cov)
+            self._kf.propagate(relative, delta_cov, jc, turn_cov)
         is_key_frame = bool(frame.is_key_frame)
         if is_key_frame and self._kf_started and self.key_frame_gate is not None:
             is_key_frame = self.key_frame_gate.keeps(
@@ -544,7 +568,9 @@ class RadarOdometry:
             )
         if is_key_frame:
             if self._kf_started:
-                kf_motion, kf_cov = self._kf.relative(pose, icp_cov if accepted else None)
+                kf_motion, kf_cov = self._kf.relative(
+                    pose, icp_cov if accepted else None, self._calib_cov
+                )
             self._kf.reset(pose, icp_cov if accepted or first else None, int(frame.timestamp_us))
             self._kf_started = True
 
