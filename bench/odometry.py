@@ -99,7 +99,7 @@ def segments(reader, scenes: list[str], chain: bool, max_gap_s: float) -> list[l
 def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
     """Every method over one segment (a worker process): poses, ground truth, key-frame motions of
     ours, CPU ms per frame."""
-    from radarslam.config import apply_overrides
+    from radarslam.config import apply_overrides, build_config
     from radarslam.nuscenes.filters import RadarPointFilter
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import make_odometry
@@ -107,7 +107,12 @@ def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
     from radarslam.odometry.run import second_pass, single_pass, total_calibration
 
     dataroot, version, scenes, overrides = job
-    cfg = OdometryConfig.model_validate(apply_overrides(OdometryConfig().model_dump(), overrides))
+    cfg = build_config(
+        OdometryConfig,
+        apply_overrides(OdometryConfig().model_dump(), overrides),
+        "odometry",
+        overrides,
+    )
     pc = cfg.points
     reader = NuScenesRadar(dataroot, version)
     filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
@@ -422,6 +427,16 @@ def main() -> None:
         help="odometry config override, e.g. fusion.gate_chi2=20",
     )
     args = ap.parse_args()
+    from radarslam.config import apply_overrides, build_config
+    from radarslam.odometry.config import OdometryConfig
+
+    # A bad --set is one line here, not a traceback from every worker.
+    build_config(
+        OdometryConfig,
+        apply_overrides(OdometryConfig().model_dump(), args.set),
+        "odometry",
+        args.set,
+    )
 
     # Imported before the workers fork, so one-time imports are not charged to a segment's CPU.
     import kiss_icp.kiss_icp  # noqa: F401
@@ -449,8 +464,12 @@ def main() -> None:
             "real", args.dataroot, args.version, scenes, False, args.jobs, args.set
         )
     if args.json:
-        args.json.write_text(json.dumps(summary, indent=2, default=float) + "\n")
+        from radarslam.io.atomic import write_text_atomic
+
+        write_text_atomic(args.json, json.dumps(summary, indent=2, default=float) + "\n")
 
 
 if __name__ == "__main__":
-    main()
+    from _cli import guarded
+
+    guarded(main)

@@ -93,6 +93,7 @@ def main(argv=None) -> int:
     parts = set(args.parts.split(","))
 
     from radarslam.config import CONFIG_DIR, load_config
+    from radarslam.io.atomic import write_text_atomic
     from radarslam.place_recognition.ablation import (
         VARIANTS,
         find_checkpoint,
@@ -215,7 +216,7 @@ def main(argv=None) -> int:
     # rows (with run details) replace the plain result rows in the JSON
     payload = json.loads(paths["json"].read_text())
     payload["rows"] = rows
-    paths["json"].write_text(json.dumps(payload, indent=2))
+    write_text_atomic(paths["json"], json.dumps(payload, indent=2))
     table = markdown_table(rows)
     speed_table = markdown_table(
         [{k: (round(v, 1) if isinstance(v, float) else v) for k, v in s.items()} for s in speed]
@@ -226,12 +227,14 @@ def main(argv=None) -> int:
         f"DB {counts['database']})\n\n{table}\n## Descriptor throughput (CPU, {args.threads} "
         f"threads)\n\n{speed_table}\n## Targets\n\n{check_lines}\n"
     )
-    (args.out / "report.md").write_text(report)
-    (args.out / "speed.json").write_text(json.dumps(speed, indent=2))
+    write_text_atomic(args.out / "report.md", report)
+    write_text_atomic(args.out / "speed.json", json.dumps(speed, indent=2))
     print(report)
     print(f"wrote {args.out / 'report.md'}, {paths['md']}, {paths['png']}")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from _cli import guarded
+
+    guarded(main)

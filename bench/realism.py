@@ -444,4 +444,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from _cli import guarded
+
+    guarded(main)

@@ -371,8 +371,12 @@ def main() -> None:
     print()
     print("stages (s):", rows["stages_s"], f"; odometry baseline wall {odo['wall_s']:.1f} s")
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench.json").write_text(json.dumps(rows, indent=2, default=float))
+    from radarslam.io.atomic import write_text_atomic
+
+    write_text_atomic(args.out / "bench.json", json.dumps(rows, indent=2, default=float))
 
 
 if __name__ == "__main__":
-    main()
+    from _cli import guarded
+
+    guarded(main)
