@@ -68,8 +68,7 @@ class LoopCandidate:
     overlap: float = float("nan")
     tight_fitness: float = float("nan")
     #: what proposed the candidate: "recognition" (AutoPlace), "proximity" (the map),
-    #: "reversed" (AutoPlace's turned images), or "confirmation" (the placement a
-    #: lone link vote predicts)
+    #: or "reversed" (AutoPlace's turned images)
     source: str = "recognition"
     constraint_ratio: float = float("nan")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_validator
 
 from radarslam.config import StrictModel
 from radarslam.odometry.config import OdometryConfig
@@ -125,42 +125,6 @@ class LoopDetectionConfig(StrictModel):
     #: LoopVerifierConfig.min_constraint_ratio): registrations that can slide along a straight
     #: street agree with each other when they slide together, hundreds of metres off.
     link_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
-    #: Weak votes. A global registration between two groups that fails only the tight-fitness
-    #: or inlier-RMSE test, and by little (tight fitness >= ``weak_vote_min_tight_fitness``,
-    #: RMSE <= ``weak_vote_max_inlier_rmse_m``), is kept as a weak vote: a link also forms when
-    #: ``weak_link_min_votes`` votes agree, at least one of them a loop that passed every test.
-    #: A weak vote must also be well conditioned (``weak_vote_min_constraint_ratio``, see
-    #: LoopVerifierConfig): along a straight street look-alike stretches agree with each other.
-    #: None: off.
-    weak_vote_min_tight_fitness: float | None = Field(0.10, ge=0.0, le=1.0)
-    weak_vote_max_inlier_rmse_m: float = Field(0.62, gt=0.0)
-    weak_vote_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
-    weak_link_min_votes: int = Field(4, ge=2)
-    #: Confirmation of a lone vote. A loop between two groups that links nothing yet predicts
-    #: where the query's session lies in the other group; up to ``confirm_max_checks`` key
-    #: frames of that session (earlier ones first, then later ones as they arrive), at least
-    #: ``confirm_spacing_m`` from the vote's key frame and from each other and predicted within
-    #: ``proximity_radius_m`` of the other group's key frames, are registered from that
-    #: prediction (the proximity settings, ICP only, without ``proximity_min_neighbors``). When
-    #: ``confirm_min_loops`` of them are accepted near the prediction (``map_consistency_*``),
-    #: they join the vote and the groups link. ICP from a prediction stays where the prediction
-    #: put it along a straight street, so the vote and every confirmation must be well
-    #: conditioned (``confirm_min_constraint_ratio``, see LoopVerifierConfig.min_constraint_ratio).
-    #: 0 checks: off.
-    confirm_max_checks: int = Field(4, ge=0)
-    confirm_min_loops: int = Field(2, ge=1)
-    confirm_spacing_m: float = Field(10.0, gt=0.0)
-    confirm_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
-
-    @model_validator(mode="after")
-    def _confirmations_can_link(self) -> LoopDetectionConfig:
-        if 0 < self.confirm_max_checks < self.confirm_min_loops:
-            raise ValueError(
-                f"confirm_min_loops={self.confirm_min_loops} exceeds confirm_max_checks="
-                f"{self.confirm_max_checks}: no lone vote could ever be confirmed "
-                "(confirm_max_checks=0 switches confirmation off)"
-            )
-        return self
 
 
 class SlamConfig(StrictModel):

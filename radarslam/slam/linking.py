@@ -2,20 +2,15 @@
 in the other; enough votes that agree merge the groups.
 
 Each vote's placement puts the others' loop key frames within ``link_consistency_m``; once
-``link_min_consistent_loops`` votes agree, the groups merge (the other votes are rejected as
-false loops). A global registration that failed the tight-fitness or RMSE test by a little, if
-well conditioned, is a weak vote: it counts only towards a link of ``weak_link_min_votes``
-agreeing votes, one of them a full loop. A lone vote is checked where it predicts the session
-lies: earlier (then later) key frames of its session, spaced apart, are registered from that
-prediction, and enough of them accepted near it link the groups (``loops.confirm_*``; a street
-driven the other way rarely gives two global matches). The merged placement is the mean of the
-agreeing votes: each vote errs on its own.
+``link_min_consistent_loops`` votes agree, at least one of them well conditioned
+(``link_min_constraint_ratio``), the groups merge (the other votes are rejected as false loops).
+The merged placement is the mean of the agreeing votes: each vote errs on its own.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -38,19 +33,8 @@ def se2_mean(poses: list[np.ndarray]) -> np.ndarray:
     return se2_to_matrix(float(t[0]), float(t[1]), yaw)
 
 
-@dataclass
-class Confirmation:
-    """A lone vote between two groups whose predicted placement is being checked at other key
-    frames of its query's session (``loops.confirm_*``)."""
-
-    vote: PendingLoop
-    taken: list[np.ndarray]  # group-frame positions of the key frames used (the vote's first)
-    confirmed: list[PendingLoop] = field(default_factory=list)
-    checks: int = 0
-
-
 class SessionLinker:
-    """The votes between groups, the lone votes being confirmed, and the merges.
+    """The votes between groups and the merges.
 
     The group of the anchored session is the map: a group that merges into it enters the graph
     (through ``insertion``) with its poses moved there, together with the loops found inside
@@ -72,26 +56,16 @@ class SessionLinker:
         self.catch_up = catch_up
         #: Verified loops between two groups, waiting for a consistent partner to merge them.
         self.votes: list[PendingLoop] = []
-        self.confirming: list[Confirmation] = []
         #: Key frames that are the query of an accepted loop (a vote, in a group or in the map).
         self.closed: set[NodeKey] = set()
 
     # --- votes -----------------------------------------------------------------------------------
 
-    def weak_vote(self, loop: PendingLoop) -> None:
-        """A rejected global registration that counts towards a weak link."""
-        rec = loop.record
-        self.votes.append(loop)
-        self.try_merge(self.state.group_of(rec.query), self.state.group_of(rec.candidate))
-
     def vote(self, session: Session, loop: PendingLoop) -> None:
         """An accepted loop between the query's group and another: the groups merge if enough
-        votes agree, else a lone vote's placement is checked at other key frames."""
-        a, b = session.group, self.state.group_of(loop.record.candidate)
+        votes agree."""
         self.votes.append(loop)
-        self.try_merge(a, b)
-        if session.group != self.state.group_of(loop.record.candidate):
-            self._confirm_vote(session, loop)
+        self.try_merge(session.group, self.state.group_of(loop.record.candidate))
 
     def _b_from_a(self, vote: PendingLoop, a: int) -> np.ndarray:
         """Where a vote between groups ``a`` and another puts ``a`` in the other's frame."""
@@ -141,11 +115,11 @@ class SessionLinker:
         at_b = [state.pose_in_group(self._side(v, b))[:2, 3] for v in votes]
 
         def independent(agree: list[int]) -> list[int]:
-            """The agreeing votes that saw distinct places (full loops first): a vote counts
-            only if, against every vote counted before it, its key frame lies
-            ``link_vote_spacing_m`` away on at least one side."""
+            """The agreeing votes that saw distinct places: a vote counts only if, against every
+            vote counted before it, its key frame lies ``link_vote_spacing_m`` away on at least
+            one side."""
             counted: list[int] = []
-            for j in sorted(agree, key=lambda j: (votes[j].weak, j)):
+            for j in agree:
                 if all(
                     max(np.hypot(*(at[j] - at[k])), np.hypot(*(at_b[j] - at_b[k])))
                     >= cfg.link_vote_spacing_m
@@ -154,28 +128,18 @@ class SessionLinker:
                     counted.append(j)
             return counted
 
-        def strength(agree: list[int]) -> tuple[int, int]:
-            counted = independent(agree)
-            return sum(not votes[j].weak for j in counted), len(counted)
-
         best: list[int] = []
+        best_count = 0
         for i in range(len(votes)):
             agree = [j for j in range(len(votes)) if agree_on(i, j)]
-            if strength(agree) > strength(best):
-                best = agree
+            count = len(independent(agree))
+            if count > best_count:
+                best, best_count = agree, count
         counted = independent(best)
-        strong = sum(not votes[j].weak for j in counted)
-        weak_link = (
-            cfg.weak_vote_min_tight_fitness is not None
-            and strong >= 1
-            and len(counted) >= cfg.weak_link_min_votes
-        )
-        if strong < cfg.link_min_consistent_loops and not weak_link:
+        if len(counted) < cfg.link_min_consistent_loops:
             return
         if not any(
-            votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio
-            for j in counted
-            if not votes[j].weak
+            votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio for j in counted
         ):
             return
         b_from_a = se2_mean([placements[j] for j in best])  # each vote errs independently
@@ -184,11 +148,7 @@ class SessionLinker:
         for v in votes:
             self.votes.remove(v)
             if id(v) in agreeing:
-                if v.weak:  # loops.csv shows its tight fitness / RMSE past the thresholds
-                    v = replace(v, record=replace(v.record, accepted=True, reason="ok"))
                 links.append(v)
-            elif v.weak:
-                state.loops.append(v.record)
             else:
                 state.loops.append(
                     replace(v.record, accepted=False, reason="inconsistent with the session link")
@@ -218,110 +178,11 @@ class SessionLinker:
             gb.loops.extend(loops)
         self.catch_up(moved, stayed)
 
-    # --- confirmations of lone votes --------------------------------------------------------------
-
-    def _confirm_vote(self, session: Session, vote: PendingLoop) -> None:
-        """A vote between two groups that linked nothing: check the placement it predicts at
-        the session's earlier key frames now, and at its later ones as they come (see
-        ``loops.confirm_*``)."""
-        cfg = self.config.loops
-        if not cfg.confirm_max_checks or cfg.proximity_radius_m is None:
-            return
-        if not vote.record.constraint_ratio >= cfg.confirm_min_constraint_ratio:
-            return  # a slide along a straight street would be confirmed along it
-        query = self.state.key_frame(vote.record.query)
-        hyp = Confirmation(vote, taken=[self.state.pose_in_group(query)[:2, 3]])
-        self.confirming.append(hyp)
-        # Nearest in time first: the overlap that produced the vote extends around it.
-        for kf in reversed(session.key_frames[: query.key.index]):
-            if self._check(hyp, kf) is not None:
-                break
-
-    def confirm_with(self, kf: KeyFrame) -> None:
-        """A new key frame checks the open confirmations of its session's lone votes."""
-        for hyp in list(self.confirming):
-            if hyp.vote.record.query.session == kf.key.session:
-                self._check(hyp, kf)
-
-    def _check(self, hyp: Confirmation, kf: KeyFrame) -> bool | None:
-        """Register ``kf`` from the placement ``hyp``'s vote predicts, if it lies apart from
-        the key frames already used and near the other group; then settle ``hyp`` when it can
-        be: True (linked), False (given up), None (still open)."""
-        cfg = self.config.loops
-        state = self.state
-        rec = hyp.vote.record
-        a, b = state.group_of(rec.query), state.group_of(rec.candidate)
-        if a == b:  # linked by other loops meanwhile; the catch-up searches these key frames
-            return self._settle(hyp)
-        pose_a = state.pose_in_group(kf)
-        if min(np.hypot(*(pose_a[:2, 3] - xy)) for xy in hyp.taken) < cfg.confirm_spacing_m:
-            return None
-        pose_b = self._b_from_a(hyp.vote, a) @ pose_a
-        found = state.near_key_frames(state.groups[b], pose_b[:2, 3])
-        if not found:
-            return None
-        other = found[0][1]
-        hyp.taken.append(pose_a[:2, 3])
-        guess = invert(state.pose_in_group(other)) @ pose_b
-        record, ver = self.verification.confirm(kf, other, guess)
-        if record.accepted:
-            hyp.confirmed.append(PendingLoop(record, ver.information))
-        else:
-            state.loops.append(record)
-        hyp.checks += 1
-        if len(hyp.confirmed) >= cfg.confirm_min_loops or hyp.checks == cfg.confirm_max_checks:
-            return self._settle(hyp)
-        return None
-
-    def _settle(self, hyp: Confirmation) -> bool:
-        """Close a confirmation: with enough loops they join the votes and the groups link
-        (True); otherwise, or when other loops linked the groups meanwhile, they are logged as
-        rejected (False)."""
-        cfg = self.config.loops
-        state = self.state
-        self.confirming.remove(hyp)
-        rec = hyp.vote.record
-
-        def linked() -> bool:
-            return state.group_of(rec.query) == state.group_of(rec.candidate)
-
-        reason = "the sessions were linked by other loops meanwhile"
-        if not linked():
-            reason = (
-                f"{len(hyp.confirmed)} of {hyp.checks} confirmations of a link vote "
-                f"(need {cfg.confirm_min_loops} that agree)"
-            )
-            if len(hyp.confirmed) >= cfg.confirm_min_loops:
-                self.votes.extend(hyp.confirmed)
-                # before the merge: its catch-up need not search these key frames again
-                closing = {p.record.query for p in hyp.confirmed} - self.closed
-                self.closed |= closing
-                self.try_merge(state.group_of(rec.query), state.group_of(rec.candidate))
-                if linked():
-                    return True
-                self.closed -= closing
-                for p in hyp.confirmed:  # they disagreed with the vote after all
-                    self.votes.remove(p)
-                reason = "the confirmations disagree with the vote"
-        for p in hyp.confirmed:
-            state.loops.append(replace(p.record, accepted=False, reason=reason))
-        return False
-
     # --- ends ------------------------------------------------------------------------------------
 
-    def settle_open(self) -> None:
-        """Close every open confirmation: its session gets no more key frames."""
-        for hyp in list(self.confirming):
-            self._settle(hyp)
-
     def finish(self) -> None:
-        """At the end of the run: open confirmations closed, votes that never linked anything
-        logged as rejected."""
-        self.settle_open()
-        for vote in self.votes:  # never confirmed by a consistent second loop
-            if vote.weak:  # rejected by verification all along
-                self.state.loops.append(vote.record)
-                continue
+        """At the end of the run: votes that never linked anything logged as rejected."""
+        for vote in self.votes:  # never joined by a consistent second loop
             self.state.loops.append(
                 replace(
                     vote.record,

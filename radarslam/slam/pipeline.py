@@ -32,7 +32,7 @@
 Where each part lives: the odometry side and its processes in :mod:`radarslam.slam.feed`; the
 sessions, groups and key frames in :mod:`radarslam.slam.state`; the candidate sources (2c, 2e,
 2f) in :mod:`radarslam.slam.proposers`; the verifier variants and predictions
-(2d) in :mod:`radarslam.slam.verification`; votes, confirmations and merges in
+(2d) in :mod:`radarslam.slam.verification`; votes and merges in
 :mod:`radarslam.slam.linking`; factors into the graph (2b, 2g) in :mod:`radarslam.slam.insertion`;
 the result in :mod:`radarslam.slam.result`. This module holds them together.
 
@@ -42,13 +42,8 @@ loop closure overlap, with identical results.
 
 Multi-session. Each scene is its own odometry chain and starts as its own *group*. Verified loops
 between two groups are votes on their relative placement; once ``link_min_consistent_loops`` votes
-agree (each vote's placement puts the others' loop key frames within ``link_consistency_m``), the
-groups merge (the other votes are rejected as false loops). A global registration that failed the
-tight-fitness or RMSE test by a little, if well conditioned, is a weak vote: it counts only towards
-a link of ``weak_link_min_votes`` agreeing votes, one of them a full loop. A lone vote is checked
-where it predicts the session lies: earlier (then later) key frames of its session, spaced apart,
-are registered from that prediction, and enough of them accepted near it link the groups
-(``loops.confirm_*``; a street driven the other way rarely gives two global matches). The first
+agree (each vote's placement puts the others' loop key frames within ``link_consistency_m``), one
+of them well conditioned, the groups merge (the other votes are rejected as false loops). The first
 session's group is the map: a group that merges into it enters the graph with its poses moved
 there (iSAM2 never sees a chain initialised kilometres away), together with the loops found inside
 it. Groups that never reach the map are added at the end on their own weak anchor and reported as
@@ -110,7 +105,7 @@ class SlamPipeline:
     Its parts, each with its own state: :attr:`feed` (frames to key-frame clouds),
     :attr:`state` (sessions, groups, key frames, the loop log), :attr:`proposers` (where a key
     frame may have been before), :attr:`verification` (with the verifier variants in
-    :attr:`verifiers`), :attr:`linker` (votes, confirmations, merges) and :attr:`insertion`
+    :attr:`verifiers`), :attr:`linker` (votes, merges) and :attr:`insertion`
     (the pose graph's factors)."""
 
     def __init__(self, reader, config: SlamConfig | None = None, recognizer=None, progress=True):
@@ -145,7 +140,7 @@ class SlamPipeline:
         )
         self._proximity = ProximityProposer(cfg, self.state)
         #: Asked in this order for every key frame; each one after the first only proposes
-        #: when nothing closed the key frame yet (ScanContext still stores it).
+        #: when nothing closed the key frame yet.
         self.proposers: list[CandidateProposer] = [
             RecognitionProposer(cfg, self.state, lambda: self.recognizer, self.timings),
             TurnedProposer(cfg, self.state, lambda: self.recognizer, self.timings),
@@ -307,7 +302,6 @@ class SlamPipeline:
             raise AssertionError(f"unknown message {message!r}")
 
     def start_session(self, name: str) -> Session:
-        self.linker.settle_open()  # the earlier sessions get no more key frames
         return self.state.start_session(name)
 
     def add_key_frame(self, session_name: str, inp: KeyFrameInput, cloud) -> KeyFrame:
@@ -325,7 +319,6 @@ class SlamPipeline:
 
         if self.recognizer is not None:
             self._close_loops(session, kf, cloud)
-            self.linker.confirm_with(kf)
         t2 = time.perf_counter()
         if session.inserted:
             self.timings.isam2_update_ms.append(1e3 * self.graph.update())
@@ -349,15 +342,11 @@ class SlamPipeline:
     def verify(self, session: Session, query: KeyFrame, proposal: Proposal) -> bool:
         """Verify one candidate; True when it was accepted (into the graph, a group or a vote)."""
         cand = proposal.candidate
-        record, ver, guess = self.verification.check(
+        record, ver = self.verification.check(
             query, cand, proposal.distance, proposal.source, proposal.verifier, proposal.hint
         )
         cand_session = self.sessions[cand.key.session]
         if not record.accepted:
-            weak = guess is None and cand_session.group != session.group
-            if weak and self.verification.is_weak(record):
-                self.linker.weak_vote(PendingLoop(record, ver.information, weak=True))
-                return False
             self.loops.append(record)
             return False
         loop = PendingLoop(record, ver.information)

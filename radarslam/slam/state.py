@@ -43,8 +43,6 @@ class PendingLoop:
 
     record: LoopCandidate
     information: np.ndarray
-    #: failed verification by a little (``loops.weak_vote_*``): counts only towards a weak link
-    weak: bool = False
 
 
 @dataclass

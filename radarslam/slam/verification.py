@@ -35,8 +35,6 @@ class Verifiers:
     guided: object
     #: proximity candidates, predicted by the map to a metre or two: ICP from the prediction
     proximity: object
-    #: a lone vote's checks: as ``proximity``, on every point
-    confirmation: object
     #: turned-image candidates: the global search over headings near a half turn
     turned: object
 
@@ -63,9 +61,6 @@ class Verifiers:
                 "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
             }
         )
-        # Lone votes are confirmed from their prediction the same way, but on every point: the
-        # constraint-ratio test they rely on was calibrated on maps with the clutter in.
-        confirmation = LoopVerifier(proximity)
         if cfg.loops.proximity_min_neighbors is not None:
             proximity = proximity.model_copy(
                 update={"min_neighbors": cfg.loops.proximity_min_neighbors}
@@ -83,7 +78,6 @@ class Verifiers:
             recognition=LoopVerifier(lv),
             guided=LoopVerifier(guided),
             proximity=LoopVerifier(proximity),
-            confirmation=confirmation,
             turned=LoopVerifier(turned),
         )
 
@@ -164,8 +158,8 @@ class Verification:
         source: str,
         verifier: str | None = None,
         hint: np.ndarray | None = None,
-    ) -> tuple[LoopCandidate, LoopVerification, np.ndarray | None]:
-        """(record, verification, guess) of one candidate. ``verifier`` names a field of
+    ) -> tuple[LoopCandidate, LoopVerification]:
+        """(record, verification) of one candidate. ``verifier`` names a field of
         :class:`Verifiers` (None: ``recognition`` or ``guided``, as the guess allows); ``hint``:
         where the search starts when neither odometry nor the map predicts the pose."""
         guess = self.guess(query, cand)
@@ -179,27 +173,6 @@ class Verification:
         if guess is not None and cand.key.session != query.key.session:
             # The guess came from the map (or the group): a pose far from it is a look-alike.
             record = self.near_prediction(record, guess, "the map's prediction")
-        return record, ver, guess
-
-    def confirm(
-        self, kf: KeyFrame, other: KeyFrame, guess: np.ndarray
-    ) -> tuple[LoopCandidate, LoopVerification]:
-        """(record, verification) of a lone vote's check: ``kf`` registered against ``other``
-        from the vote's prediction ``guess``."""
-        cfg = self.config.loops
-        record, ver = self._register(
-            self.verifiers.confirmation, kf, other, float("nan"), guess, guess
-        )
-        record = self.near_prediction(
-            replace(record, source="confirmation"), guess, "the vote's prediction"
-        )
-        if record.accepted and not record.constraint_ratio >= cfg.confirm_min_constraint_ratio:
-            record = replace(
-                record,
-                accepted=False,
-                reason=f"constraint_ratio {record.constraint_ratio:.2f} < "
-                f"{cfg.confirm_min_constraint_ratio} (loops.confirm_min_constraint_ratio)",
-            )
         return record, ver
 
     def near_prediction(self, record: LoopCandidate, guess: np.ndarray, what: str):
@@ -213,17 +186,3 @@ class Verification:
             reason = f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from {what}"
             return replace(record, accepted=False, reason=reason)
         return record
-
-    def is_weak(self, record: LoopCandidate) -> bool:
-        """Whether a rejected global registration is a weak vote (``loops.weak_vote_*``)."""
-        cfg = self.config.loops
-        lv = self.config.backend.loop_verification
-        if cfg.weak_vote_min_tight_fitness is None:
-            return False
-        return bool(
-            record.fitness >= lv.min_fitness
-            and record.overlap >= lv.min_overlap
-            and record.inlier_rmse_m <= cfg.weak_vote_max_inlier_rmse_m
-            and record.tight_fitness >= cfg.weak_vote_min_tight_fitness
-            and record.constraint_ratio >= cfg.weak_vote_min_constraint_ratio
-        )

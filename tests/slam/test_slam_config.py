@@ -20,11 +20,12 @@ def test_unknown_key_frame_reference_fails_before_any_data_is_read():
         load_config(SlamConfig, None, ["key_frames.ref_channel=RADAR_TOP"])
 
 
-def test_confirmations_that_could_never_link_are_a_config_error():
-    with pytest.raises(ConfigError, match=r"confirm_min_loops=5 exceeds confirm_max_checks=4"):
-        load_config(SlamConfig, None, ["loops.confirm_min_loops=5"])
-    off = load_config(SlamConfig, None, ["loops.confirm_max_checks=0"])  # off, whatever the rest
-    assert off.loops.confirm_max_checks == 0
+def test_removed_link_options_are_unknown_keys():
+    """Confirmations of lone votes and weak votes are gone (never decisive on the calibrated
+    world): an old config naming them fails on the key, not silently."""
+    for key in ("loops.confirm_max_checks=0", "loops.weak_vote_min_tight_fitness=null"):
+        with pytest.raises(ConfigError, match=key.split("=")[0].split(".")[1]):
+            load_config(SlamConfig, None, [key])
 
 
 def test_candidate_map_and_proximity_persistence_are_checked():
@@ -44,8 +45,8 @@ def test_proximity_constraint_ratio_applies_to_proximity_registrations_only():
     cfg = load_config(SlamConfig, None, ["loops.proximity_min_constraint_ratio=0.4"])
     v = Verifiers.from_config(cfg)
     assert v.proximity.config.min_constraint_ratio == 0.4
-    # global searches and a lone vote's confirmations keep the verifier's own setting
-    for other in (v.recognition, v.guided, v.confirmation, v.turned):
+    # global searches keep the verifier's own setting
+    for other in (v.recognition, v.guided, v.turned):
         assert other.config.min_constraint_ratio == 0.0
     with pytest.raises(ConfigError, match=r"loops.proximity_min_constraint_ratio"):
         load_config(SlamConfig, None, ["loops.proximity_min_constraint_ratio=2"])
