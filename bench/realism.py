@@ -284,7 +284,9 @@ def main() -> None:
     from radarslam.nuscenes.commands import comparison, comparison_markdown
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.nuscenes.stats import dataset_statistics
+    from radarslam.sim.config import load_sim_config
 
+    load_sim_config(args.preset, args.set)  # a bad --set is one line now, not after the real runs
     if not (args.dataroot / args.version).is_dir():
         print(
             f"error: {args.dataroot / args.version}: no such folder (the real nuScenes radar split "

@@ -199,6 +199,8 @@ def main() -> None:
     from radarslam.slam.outputs import write_results
     from radarslam.slam.pipeline import SlamPipeline
 
+    # A bad --set is found before minutes of city generation, not after.
+    config = load_config(SlamConfig, CONFIG_DIR / "slam" / f"{args.preset}.yaml", args.set)
     if not is_complete(args.dataroot, args.version):
         print(f"generating city subset ({args.logs} logs, {args.routes} routes) in {args.dataroot}")
         overrides = [f"schedule.n_logs={args.logs}", f"schedule.n_routes={args.routes}"]
@@ -211,7 +213,6 @@ def main() -> None:
     scenes = [s.name for s in reader.scenes_for_location(reader.locations()[0])]
     scenes = scenes[: args.max_scenes] if args.max_scenes else scenes
     days = sorted({s.date_captured for s in reader.scenes() if s.name in scenes})
-    config = load_config(SlamConfig, CONFIG_DIR / "slam" / f"{args.preset}.yaml", args.set)
 
     odo = odometry_baseline(reader, scenes, config)
     t0, c0 = time.perf_counter(), cpu_s()

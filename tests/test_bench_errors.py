@@ -14,8 +14,14 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     [
         ("odometry.py", ["--set", "fusion.gate_chi2=-1"], "fusion.gate_chi2"),
         ("odometry.py", ["--set", "foo.bar=1"], "foo"),
-        ("slam.py", ["--set", "loops.no_such_key=1", "--out", "{tmp}"], "no_such_key"),
+        # before generating the (missing) city: nothing is written
+        (
+            "slam.py",
+            ["--set", "loops.no_such_key=1", "--dataroot", "{tmp}/city", "--out", "{tmp}/out"],
+            "no_such_key",
+        ),
         ("odometry.py", ["--dataroot", "{tmp}/none"], "no such folder"),
+        ("realism.py", ["--set", "world.x=1", "--work", "{tmp}/work"], "world"),
     ],
 )
 def test_bad_argument_is_one_line_and_status_2(tmp_path, script, args, names):
