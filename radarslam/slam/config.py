@@ -125,6 +125,11 @@ class LoopDetectionConfig(StrictModel):
     #: LoopVerifierConfig.min_constraint_ratio): registrations that can slide along a straight
     #: street agree with each other when they slide together, hundreds of metres off.
     link_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
+    #: Two scenes of one log are one vehicle's drive: a link may not put the later scene's first
+    #: key frame farther from the earlier one's last than this speed over the time between them
+    #: (plus 20 m of odometry drift). Look-alike parallel streets hundreds of metres apart then
+    #: cannot take a session of the same drive. None: off.
+    same_log_max_speed_mps: float | None = Field(30.0, gt=0.0)
 
 
 class SlamConfig(StrictModel):

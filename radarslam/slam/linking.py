@@ -4,7 +4,9 @@ in the other; enough votes that agree merge the groups.
 Each vote's placement puts the others' loop key frames within ``link_consistency_m``; once
 ``link_min_consistent_loops`` votes agree, at least one of them well conditioned
 (``link_min_constraint_ratio``), the groups merge (the other votes are rejected as false loops).
-The merged placement is the mean of the agreeing votes: each vote errs on its own.
+The merged placement is the mean of the agreeing votes: each vote errs on its own. A placement
+that would put two scenes of one log (one vehicle's drive) farther apart than the vehicle could
+have driven between them is not a candidate (``same_log_max_speed_mps``).
 """
 
 from __future__ import annotations
@@ -23,6 +25,10 @@ from radarslam.slam.verification import Verification, se2_distance
 
 if TYPE_CHECKING:
     from radarslam.slam.config import SlamConfig
+
+
+#: Odometry drift allowed on top of the drivable distance between two scenes of one log.
+_SAME_LOG_DRIFT_M = 20.0
 
 
 def se2_mean(poses: list[np.ndarray]) -> np.ndarray:
@@ -133,7 +139,9 @@ class SessionLinker:
         for i in range(len(votes)):
             agree = [j for j in range(len(votes)) if agree_on(i, j)]
             count = len(independent(agree))
-            if count > best_count:
+            if count > best_count and self._drivable(
+                a, b, se2_mean([placements[j] for j in agree])
+            ):
                 best, best_count = agree, count
         counted = independent(best)
         if len(counted) < cfg.link_min_consistent_loops:
@@ -154,6 +162,35 @@ class SessionLinker:
                     replace(v.record, accepted=False, reason="inconsistent with the session link")
                 )
         self._merge(a, b, b_from_a, links)
+
+    def _drivable(self, a: int, b: int, b_from_a: np.ndarray) -> bool:
+        """Whether placing group ``a`` at ``b_from_a`` in ``b`` keeps every pair of scenes of
+        one log (one in each group) within reach of each other: the later one's first key frame
+        no farther from the earlier one's last than ``same_log_max_speed_mps`` times the time
+        between them, plus ``_SAME_LOG_DRIFT_M``."""
+        max_speed = self.config.loops.same_log_max_speed_mps
+        if max_speed is None:
+            return True
+        state = self.state
+        for name_a in state.groups[a].from_session:
+            for name_b in state.groups[b].from_session:
+                sa, sb = state.sessions[name_a], state.sessions[name_b]
+                if not sa.log or sa.log != sb.log or not sa.key_frames or not sb.key_frames:
+                    continue
+                if sa.timestamps_us[-1] <= sb.timestamps_us[0]:
+                    end = b_from_a @ state.pose_in_group(sa.key_frames[-1])
+                    start = state.pose_in_group(sb.key_frames[0])
+                    gap_us = sb.timestamps_us[0] - sa.timestamps_us[-1]
+                elif sb.timestamps_us[-1] <= sa.timestamps_us[0]:
+                    end = state.pose_in_group(sb.key_frames[-1])
+                    start = b_from_a @ state.pose_in_group(sa.key_frames[0])
+                    gap_us = sa.timestamps_us[0] - sb.timestamps_us[-1]
+                else:
+                    continue  # overlapping in time: not one drive's consecutive scenes
+                reach_m = max_speed * gap_us * 1e-6 + _SAME_LOG_DRIFT_M
+                if np.hypot(*(end[:2, 3] - start[:2, 3])) > reach_m:
+                    return False
+        return True
 
     def _merge(self, a: int, b: int, b_from_a: np.ndarray, links: list[PendingLoop]) -> None:
         state = self.state

@@ -302,7 +302,7 @@ class SlamPipeline:
             raise AssertionError(f"unknown message {message!r}")
 
     def start_session(self, name: str) -> Session:
-        return self.state.start_session(name)
+        return self.state.start_session(name, log=self.reader.scene(name).log_token)
 
     def add_key_frame(self, session_name: str, inp: KeyFrameInput, cloud) -> KeyFrame:
         """A key frame of the session: a graph node, then loop closing, then iSAM2."""

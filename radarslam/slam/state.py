@@ -68,6 +68,8 @@ class Session:
     last_reversed_kf: int = -(10**9)  # the last key frame that ran the turned search
     reversed_misses: int = 0  # turned searches since the last accepted one
     timestamps_us: list[int] = field(default_factory=list)  # of the key frames, increasing
+    #: the dataset log (one vehicle's one drive) the scene was cut from; "" when unknown
+    log: str = ""
     _xy: np.ndarray = field(default_factory=lambda: np.zeros((64, 2)))  # grows by doubling
 
     def add_position(self, xy: np.ndarray) -> None:
@@ -125,9 +127,9 @@ class MapState:
 
     # --- building --------------------------------------------------------------------------------
 
-    def start_session(self, name: str) -> Session:
+    def start_session(self, name: str, log: str = "") -> Session:
         """A new session in a group of its own."""
-        session = Session(name, len(self.sessions))
+        session = Session(name, len(self.sessions), log=log)
         self.sessions[name] = session
         group = Group(session.index, {name: np.eye(4)})  # unique: merges delete groups
         self.groups[group.index] = group

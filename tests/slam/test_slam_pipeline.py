@@ -274,6 +274,23 @@ def test_registrations_that_fail_verification_do_not_vote(reader):
     ]
 
 
+@pytest.mark.parametrize(("max_speed", "linked"), [(30.0, False), (None, True)])
+def test_a_link_cannot_put_scenes_of_one_log_out_of_reach(reader, max_speed, linked):
+    """Four agreeing, well-conditioned votes that place the second scene 300 m off: the tiny
+    preset's two scenes are one log's drive, seconds apart, so the placement is not drivable
+    (``loops.same_log_max_speed_mps``); without the rule it links, at the wrong place."""
+    names = [s.name for s in reader.scenes()]
+    assert len({reader.scene(n).log_token for n in names}) == 1
+
+    def accept(pipeline, q, c):
+        if not _is_link_pair(pipeline, q, c, 3):
+            return None
+        return _true_pose(pipeline, q, c) @ se2_to_matrix(300.0, 0.0, 0.0)
+
+    res = _scripted_pipeline(reader, accept, same_log_max_speed_mps=max_speed).run(names)
+    assert (len(res.components) == 1) is linked
+
+
 def test_a_single_vote_does_not_link(reader):
     def accept(pipeline, q, c):
         return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 0) else None
@@ -697,7 +714,7 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader):
     cfg = SlamConfig()
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
     for name in ("A", "B", "C"):
-        pipeline.start_session(name)
+        pipeline.state.start_session(name)
     c_from_b_true = se2_to_matrix(20.0, 5.0, 0.3)  # C's odometry frame from B's (the truth)
     group = pipeline.groups[pipeline.sessions["C"].group]
     group.from_session["B"] = group.from_session["C"] @ c_from_b_true @ se2_to_matrix(0, 3, 0)
