@@ -96,23 +96,25 @@ def segments(reader, scenes: list[str], chain: bool, max_gap_s: float) -> list[l
     return groups
 
 
+def odometry_config(overrides: list[str]):
+    """The shipped odometry config (radarslam/configs/odometry/default.yaml, as `radarslam
+    odometry` reads it) with ``--set`` overrides; ConfigError names a bad one."""
+    from radarslam.config import CONFIG_DIR, load_config
+    from radarslam.odometry.config import OdometryConfig
+
+    return load_config(OdometryConfig, CONFIG_DIR / "odometry" / "default.yaml", overrides)
+
+
 def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
     """Every method over one segment (a worker process): poses, ground truth, key-frame motions of
     ours, CPU ms per frame."""
-    from radarslam.config import apply_overrides, build_config
     from radarslam.nuscenes.filters import RadarPointFilter
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import make_odometry
-    from radarslam.odometry.config import OdometryConfig
     from radarslam.odometry.run import second_pass, single_pass, total_calibration
 
     dataroot, version, scenes, overrides = job
-    cfg = build_config(
-        OdometryConfig,
-        apply_overrides(OdometryConfig().model_dump(), overrides),
-        "odometry",
-        overrides,
-    )
+    cfg = odometry_config(overrides)
     pc = cfg.points
     reader = NuScenesRadar(dataroot, version)
     filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
@@ -427,16 +429,7 @@ def main() -> None:
         help="odometry config override, e.g. fusion.gate_chi2=20",
     )
     args = ap.parse_args()
-    from radarslam.config import apply_overrides, build_config
-    from radarslam.odometry.config import OdometryConfig
-
-    # A bad --set is one line here, not a traceback from every worker.
-    build_config(
-        OdometryConfig,
-        apply_overrides(OdometryConfig().model_dump(), args.set),
-        "odometry",
-        args.set,
-    )
+    odometry_config(args.set)  # a bad --set is one line here, not a traceback from every worker
 
     # Imported before the workers fork, so one-time imports are not charged to a segment's CPU.
     import kiss_icp.kiss_icp  # noqa: F401

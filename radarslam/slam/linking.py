@@ -136,13 +136,15 @@ class SessionLinker:
 
         best: list[int] = []
         best_count = 0
+        b_from_a = np.eye(4)
         for i in range(len(votes)):
             agree = [j for j in range(len(votes)) if agree_on(i, j)]
             count = len(independent(agree))
-            if count > best_count and self._drivable(
-                a, b, se2_mean([placements[j] for j in agree])
-            ):
-                best, best_count = agree, count
+            if count <= best_count:
+                continue
+            placement = se2_mean([placements[j] for j in agree])  # each vote errs on its own
+            if self._drivable(a, b, placement):
+                best, best_count, b_from_a = agree, count, placement
         counted = independent(best)
         if len(counted) < cfg.link_min_consistent_loops:
             return
@@ -150,7 +152,6 @@ class SessionLinker:
             votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio for j in counted
         ):
             return
-        b_from_a = se2_mean([placements[j] for j in best])  # each vote errs independently
         agreeing = {id(votes[j]) for j in best}
         links = []
         for v in votes:
@@ -172,21 +173,22 @@ class SessionLinker:
         if max_speed is None:
             return True
         state = self.state
+
+        def in_b(session: Session, kf: KeyFrame) -> np.ndarray:
+            pose = state.pose_in_group(kf)
+            return b_from_a @ pose if session.group == a else pose
+
         for name_a in state.groups[a].from_session:
             for name_b in state.groups[b].from_session:
                 sa, sb = state.sessions[name_a], state.sessions[name_b]
                 if not sa.log or sa.log != sb.log or not sa.key_frames or not sb.key_frames:
                     continue
-                if sa.timestamps_us[-1] <= sb.timestamps_us[0]:
-                    end = b_from_a @ state.pose_in_group(sa.key_frames[-1])
-                    start = state.pose_in_group(sb.key_frames[0])
-                    gap_us = sb.timestamps_us[0] - sa.timestamps_us[-1]
-                elif sb.timestamps_us[-1] <= sa.timestamps_us[0]:
-                    end = state.pose_in_group(sb.key_frames[-1])
-                    start = b_from_a @ state.pose_in_group(sa.key_frames[0])
-                    gap_us = sa.timestamps_us[0] - sb.timestamps_us[-1]
-                else:
+                first, second = sorted((sa, sb), key=lambda s: s.timestamps_us[0])
+                gap_us = second.timestamps_us[0] - first.timestamps_us[-1]
+                if gap_us < 0:
                     continue  # overlapping in time: not one drive's consecutive scenes
+                end = in_b(first, first.key_frames[-1])
+                start = in_b(second, second.key_frames[0])
                 reach_m = max_speed * gap_us * 1e-6 + _SAME_LOG_DRIFT_M
                 if np.hypot(*(end[:2, 3] - start[:2, 3])) > reach_m:
                     return False
