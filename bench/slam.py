@@ -293,6 +293,7 @@ def main() -> None:
                 "verification_s",
                 "backend_s",
                 "final_optimization_s",
+                "calibration_pass_s",
             )
         },
         "isam2_ms_median": float(np.median(result.timings.isam2_update_ms)),

@@ -249,6 +249,27 @@ def _where(frame: RadarFrame) -> str:
     return f"frame at {frame.timestamp_us!r} us (scene {frame.scene_name or '?'})"
 
 
+def mounting_rotations(mounting_yaw_deg: dict[str, float]) -> dict[str, np.ndarray]:
+    """Per channel, the 4x4 sensor rotation by its mounting-yaw error (deg)."""
+    return {
+        ch: exp_se2(np.array([0.0, 0.0, math.radians(deg)])) for ch, deg in mounting_yaw_deg.items()
+    }
+
+
+def with_mounting(frame: RadarFrame, rotations: dict[str, np.ndarray]) -> RadarFrame:
+    """``frame`` with each sweep's ``ego_from_sensor`` turned by its channel's rotation
+    (:func:`mounting_rotations`)."""
+    if not rotations:
+        return frame
+    sweeps = {
+        ch: dataclasses.replace(sw, ego_from_sensor=sw.ego_from_sensor @ rotations[ch])
+        if ch in rotations
+        else sw
+        for ch, sw in frame.sweeps.items()
+    }
+    return dataclasses.replace(frame, sweeps=sweeps)
+
+
 class RadarOdometry:
     """Streaming radar odometry: ``process(frame)`` once per frame, in time order.
 
@@ -399,17 +420,10 @@ class RadarOdometry:
         if key is not None and len(self._good_calibrations) < _MAX_CALIBRATIONS:
             self._good_calibrations.add(key)
 
-    def _recalibrated(self, frame: RadarFrame) -> RadarFrame:
-        """``frame`` with the configured mounting-yaw errors added to its sweeps' calibration."""
-        if not self._mounting:
-            return frame
-        sweeps = {
-            ch: dataclasses.replace(sw, ego_from_sensor=sw.ego_from_sensor @ self._mounting[ch])
-            if ch in self._mounting
-            else sw
-            for ch, sw in frame.sweeps.items()
-        }
-        return dataclasses.replace(frame, sweeps=sweeps)
+    def calibrated_frame(self, frame: RadarFrame) -> RadarFrame:
+        """``frame`` as the odometry uses it: the mounting yaws given (``mounting_yaw_deg``) and
+        folded in at resets added to its sweeps' calibration."""
+        return with_mounting(frame, self._mounting)
 
     # --- points -------------------------------------------------------------------------------
 
@@ -451,7 +465,7 @@ class RadarOdometry:
         cfg = self.config
         # Before anything uses the frame: a NaN pose given to kiss-icp aborts the process.
         ground_truth = self.check_frame(frame)
-        frame = self._recalibrated(frame)
+        frame = self.calibrated_frame(frame)
         fit = self.doppler.fit_frame(frame)
         t1 = time.perf_counter()
 

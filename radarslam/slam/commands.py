@@ -131,6 +131,7 @@ def run_slam(
             "verification": t.verification_s,
             "backend_isam2": t.backend_s,
             "final_optimization": t.final_optimization_s,
+            "calibration_pass": t.calibration_pass_s,
         },
         "components": [
             {"sessions": list(c.sessions), "anchored": c.anchored} for c in result.components

@@ -156,6 +156,7 @@ class OdometryFeed:
     ) -> Iterator[FeedMessage]:
         """The messages of every scene in order. ``frames(info)`` gives a scene's frames (None:
         read them here)."""
+        from radarslam.odometry.pipeline import mounting_rotations, with_mounting
         from radarslam.odometry.run import DopplerHealth
         from radarslam.slam.keyframes import SweepBuffer
 
@@ -168,6 +169,11 @@ class OdometryFeed:
 
         cfg = self.config
         timings = self.timings
+        # The key-frame clouds take the run's given calibration (a calibration pass fills it),
+        # not the estimate the odometry folds in at each session: loops register one session's
+        # clouds against another's, and clouds turned by different estimates disagree (turned
+        # per session, the benchmark's clouds linked 2 of 8 sessions instead of 8).
+        cloud_mounting = mounting_rotations(self.odometry.config.mounting_yaw_deg)
         use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
         for n, info in enumerate(infos):
             yield SessionStart(info.name)
@@ -195,7 +201,9 @@ class OdometryFeed:
                 span = (frame.timestamp_us if span is None else span[0], frame.timestamp_us)
                 twist = res.doppler.twist if res.doppler.valid else np.zeros(3)
                 masks = res.doppler.static_masks if use_odometry_mask else None
-                buffer.add_frame(frame, res.world_from_ego, twist, masks)
+                buffer.add_frame(
+                    with_mounting(frame, cloud_mounting), res.world_from_ego, twist, masks
+                )
                 pending += 1
                 if res.is_key_frame:
                     t2 = time.perf_counter()

@@ -206,6 +206,7 @@ class SlamPipeline:
         a pipeline holds the state of its run, so a second call is an error."""
         infos = self._scene_infos(scenes)
         self._ran = True  # from here on the pipeline's state changes
+        self._calibration_pass(infos)
         self._feed_key_frames(infos)
         self._check_key_frames(infos)
         self.linker.finish()
@@ -237,6 +238,30 @@ class SlamPipeline:
         if len(set(names)) != len(names):
             raise DataError(f"scene listed twice in {names}")
         return infos
+
+    def _calibration_pass(self, infos: Sequence[SceneInfo]) -> None:
+        """With ``odometry.fusion.calibration.passes: 2``, the odometry runs over every scene once
+        to estimate the vehicle's mounting yaws, and the run proper applies them to every sweep
+        from its first frame: the anchor session's odometry, its key-frame clouds and the map
+        built on them no longer carry the mounting errors while the filter converges."""
+        from radarslam.odometry.pipeline import RadarOdometry
+        from radarslam.odometry.run import run_odometry, second_pass, single_pass
+
+        odo = self.config.odometry
+        if odo.fusion.calibration.passes < 2 or odo.fusion.calibration.yaw_bias_model != "mounting":
+            return
+        t0 = time.perf_counter()
+        first = run_odometry(
+            self.reader,
+            infos,
+            single_pass(odo, dict(odo.mounting_yaw_deg)),
+            progress=self.progress,
+        )
+        self.odometry = RadarOdometry(
+            second_pass(odo, first.calibration), self.odometry.key_frame_gate
+        )
+        self.feed.odometry = self.odometry
+        self.timings.calibration_pass_s += time.perf_counter() - t0
 
     def _feed_key_frames(self, infos: Sequence[SceneInfo]) -> None:
         """Odometry over every frame, each key frame handled as it comes (in a forked process

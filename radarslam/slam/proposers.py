@@ -58,6 +58,13 @@ class Proposal:
     hint: np.ndarray | None = None  # where the search starts without a prediction
 
 
+def moved(last_xy: np.ndarray | None, kf: KeyFrame, min_travel_m: float) -> bool:
+    """Whether ``kf`` lies ``min_travel_m`` (odometry) from ``last_xy`` (None: nothing yet)."""
+    if last_xy is None:
+        return True
+    return bool(np.hypot(*(kf.odometry_pose[:2, 3] - last_xy)) >= min_travel_m)
+
+
 class CandidateProposer(Protocol):
     def propose(
         self, session: Session, kf: KeyFrame, cloud: AccumulatedCloud, closed: bool
@@ -88,7 +95,10 @@ class RecognitionProposer:
         t0 = time.perf_counter()
         desc, rcs = rec.describe(self.state.sequence(session, cloud, rec.seq_len))
         candidates = []
-        if kf.key.index - session.last_loop_kf > cfg.min_key_frames_between_loops:
+        if kf.key.index - session.last_loop_kf > cfg.min_key_frames_between_loops and moved(
+            session.last_query_xy, kf, cfg.recognition_min_travel_m
+        ):
+            session.last_query_xy = kf.odometry_pose[:2, 3].copy()
             candidates = rec.query_descriptor(
                 desc, rcs, k=cfg.num_candidates, exclude=self.state.excluded(kf)
             )
@@ -139,9 +149,11 @@ class TurnedProposer:
             or kf.key.index < self.config.key_frames.local_map_neighbors
             or kf.key.index - session.last_reversed_kf < interval
             or kf.key.index - session.last_loop_kf <= cfg.min_key_frames_between_loops
+            or not moved(session.last_reversed_xy, kf, cfg.recognition_min_travel_m)
         ):
             return []
         session.last_reversed_kf = kf.key.index
+        session.last_reversed_xy = kf.odometry_pose[:2, 3].copy()
         self._searched = kf.key
         t0 = time.perf_counter()
         rec = self.recognizer()

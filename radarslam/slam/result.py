@@ -22,6 +22,7 @@ class SlamTimings:
     verification_s: float = 0.0
     backend_s: float = 0.0
     final_optimization_s: float = 0.0
+    calibration_pass_s: float = 0.0  # fusion.calibration.passes: 2, before the run proper
     isam2_update_ms: list[float] = field(default_factory=list)
 
     @property
@@ -34,6 +35,7 @@ class SlamTimings:
             + self.verification_s
             + self.backend_s
             + self.final_optimization_s
+            + self.calibration_pass_s
         )
 
 

@@ -174,7 +174,7 @@ def test_reset_folds_the_estimated_mounting_yaws_into_the_sweeps(tiny_dataroot, 
             yaw = np.arctan2(odo._mounting[ch][1, 0], odo._mounting[ch][0, 0])
             assert yaw == pytest.approx(before[i])
         # the sweeps of the next frame come out turned by the folded yaws
-        turned = odo._recalibrated(frames[0])
+        turned = odo.calibrated_frame(frames[0])
         for ch, sw in turned.sweeps.items():
             d = invert(frames[0].sweeps[ch].ego_from_sensor) @ sw.ego_from_sensor
             assert np.arctan2(d[1, 0], d[0, 0]) == pytest.approx(before[RADAR_CHANNELS.index(ch)])

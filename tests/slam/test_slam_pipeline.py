@@ -817,3 +817,91 @@ def test_key_frame_gate_thins_key_frames_and_keeps_the_chain(reader, scenes):
         step = invert(prev.odometry_pose) @ kf.odometry_pose
         np.testing.assert_allclose(kf.relative, step, atol=1e-9)
         assert np.hypot(*step[:2, 3]) >= 3.0 or abs(yaw_of(step)) >= np.radians(5.0)
+
+
+def _yaw_between(a: np.ndarray, b: np.ndarray) -> float:
+    return float(yaw_of(invert(a) @ b))
+
+
+def test_key_frame_clouds_use_the_odometry_calibration(reader, scenes):
+    """The mounting yaws the odometry applies to the sweeps reach the key-frame clouds: a map
+    built with the nominal calibration would disagree with the odometry by the mounting errors."""
+    runs = {}
+    for deg in (0.0, 2.0):
+        cfg = SlamConfig(pipelined=deg > 0)  # the forked feed too
+        cfg.loops.enabled = False
+        cfg.odometry.mounting_yaw_deg = {"RADAR_FRONT": deg} if deg else {}
+        pipeline = SlamPipeline(reader, cfg, progress=False)
+        pipeline.run(scenes[:1])
+        runs[deg] = pipeline.key_frames(scenes[0])
+    assert len(runs[0.0]) == len(runs[2.0]) > 10
+    for nominal, turned in zip(runs[0.0], runs[2.0], strict=True):
+        assert _yaw_between(nominal.ego_from_ref, turned.ego_from_ref) == pytest.approx(
+            np.radians(2.0), abs=1e-9
+        )
+
+
+def test_calibration_pass_applies_its_estimate_from_the_first_frame(reader, scenes):
+    from radarslam.odometry.run import run_odometry
+
+    results = {}
+    for passes in (1, 2):
+        cfg = SlamConfig()
+        cfg.loops.enabled = False
+        cfg.odometry.fusion.calibration.passes = passes
+        pipeline = SlamPipeline(reader, cfg, progress=False)
+        results[passes] = (pipeline, pipeline.run(scenes))
+    two, res = results[2]
+    # the estimate of an odometry run over the same scenes, applied to every sweep
+    first = run_odometry(reader, scenes, SlamConfig().odometry, progress=False)
+    estimate = first.calibration["mounting_yaw_error_deg"]
+    applied = two.odometry.config.mounting_yaw_deg
+    assert applied == pytest.approx(estimate, abs=1e-9)
+    assert max(abs(v) for v in applied.values()) > 0.1
+    one = results[1][0]
+    kf_one, kf_two = one.key_frames(scenes[0])[0], two.key_frames(scenes[0])[0]
+    assert _yaw_between(kf_one.ego_from_ref, kf_two.ego_from_ref) == pytest.approx(
+        np.radians(applied["RADAR_FRONT"]), abs=1e-9
+    )
+    assert res.timings.calibration_pass_s > 0 and results[1][1].timings.calibration_pass_s == 0
+
+
+class _CountingQueries(_AllCandidates):
+    """Counts the queries; proposes nothing (no loop resets the spacing rules)."""
+
+    queries = 0
+
+    def query_descriptor(self, desc, rcs, k, exclude):
+        self.queries += 1
+        return []
+
+
+def _queried_indices(kfs, travel_m):
+    """The key frames each at least ``travel_m`` (odometry) from the last one queried."""
+    out, last = [], None
+    for i, kf in enumerate(kfs):
+        p = kf.odometry_pose[:2, 3]
+        if last is None or np.hypot(*(p - last)) >= travel_m:
+            out.append(i)
+            last = p
+    return out
+
+
+@pytest.mark.parametrize("travel_m", [0.0, 4.0, 1e4])
+def test_a_place_is_queried_again_only_after_the_car_moved(reader, scenes, travel_m):
+    cfg = SlamConfig(pipelined=False)
+    cfg.loops.recognition_min_travel_m = travel_m
+    cfg.loops.reversed_search = False
+    counting = _CountingQueries()
+    pipeline = SlamPipeline(reader, cfg, recognizer=counting, progress=False)
+    pipeline.run(scenes)
+    kfs = {n: pipeline.key_frames(n) for n in scenes}
+    expected = sum(len(_queried_indices(k, travel_m)) for k in kfs.values())
+    assert counting.queries == expected
+    every = sum(len(k) for k in kfs.values())
+    if travel_m == 0.0:
+        assert expected == every
+    elif travel_m == 4.0:
+        assert len(scenes) < expected < every
+    else:
+        assert expected == len(scenes)  # each session's first key frame only
