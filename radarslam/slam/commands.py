@@ -144,6 +144,17 @@ def run_slam(
         f"{result.duration_s:.0f} s of radar in {wall_s:.1f} s "
         f"({timing['real_time_factor']:.1f}x real time)"
     )
+    calibration = result.doppler_calibration or {}
+    mounting = calibration.get("mounting_yaw_error_deg")
+    if mounting:
+        sigma = calibration.get("mounting_yaw_sigma_deg", {})
+        console.print(
+            "estimated radar mounting-yaw errors (deg): "
+            + ", ".join(
+                f"{ch.removeprefix('RADAR_')} {deg:+.2f} +- {sigma.get(ch, float('nan')):.2f}"
+                for ch, deg in mounting.items()
+            )
+        )
     reports = []
     finish = None
     if evaluate:
@@ -162,7 +173,7 @@ def run_slam(
         result.static_map,
         config_yaml=dump_config(config),
         components=[c.sessions for c in result.components],  # the anchored map first
-        extra_json={"timing.json": timing},
+        extra_json={"timing.json": timing, **_summary(result)},
         finish=finish,
     )
     if reports:
@@ -170,6 +181,13 @@ def run_slam(
 
         print_report(reports[0], out, eval_cfg)
     return result
+
+
+def _summary(result) -> dict[str, dict]:
+    """``summary.json`` of a SLAM folder: the odometry's Doppler calibration, as in an odometry
+    folder's (none when the odometry estimates no calibration)."""
+    cal = result.doppler_calibration
+    return {"summary.json": {"doppler_calibration": cal}} if cal else {}
 
 
 def run_command(

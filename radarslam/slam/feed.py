@@ -115,9 +115,11 @@ class ReadingDone:
 
 @dataclass(frozen=True)
 class OdometryDone:
-    """Odometry process -> key-frame side: the odometry's timings (:data:`TIMING_FIELDS`)."""
+    """Odometry process -> key-frame side: the odometry's timings (:data:`TIMING_FIELDS`) and
+    its Doppler calibration at the end of the run (``DopplerCalibration.as_dict()``)."""
 
     timings: dict[str, Any]
+    calibration: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -150,6 +152,8 @@ class OdometryFeed:
         self.frame_filter = frame_filter
         self.timings = timings
         self.point_mask = point_mask
+        #: The odometry's Doppler calibration once every scene has run (the run's estimate).
+        self.calibration: dict | None = None
 
     def messages(
         self, infos: Sequence[SceneInfo], frames: Callable | None = None
@@ -223,6 +227,7 @@ class OdometryFeed:
                 log.warning("scene %s: %s: its odometry is unreliable", info.name, why)
             if span is not None:
                 yield SessionSpan(span[0], span[1])
+        self.calibration = self.odometry.calibration.as_dict()
 
     def run_forked(
         self,
@@ -312,6 +317,7 @@ class OdometryFeed:
             if isinstance(message, OdometryDone):
                 for name, value in message.timings.items():
                     setattr(self.timings, name, value)
+                self.calibration = message.calibration
                 break
             if finished.is_set():
                 all_threads()
@@ -506,7 +512,9 @@ def _odometry_process(feed, infos, messages, finished, parent: int, frames=None)
             source.finish()
         finished.set()
         t = feed.timings
-        messages.put(OdometryDone({name: getattr(t, name) for name in TIMING_FIELDS}))
+        messages.put(
+            OdometryDone({name: getattr(t, name) for name in TIMING_FIELDS}, feed.calibration)
+        )
     except BaseException as exc:  # handed to the parent, which raises it
         _put_error(messages, exc, "odometry process")
     finally:

@@ -127,6 +127,7 @@ class SlamPipeline:
             _frozen(pc.invalid_states), _frozen(pc.dynprop_states), _frozen(pc.ambig_states)
         )
         self.timings = SlamTimings()
+        self._first_odometry = self.odometry  # replaced by a calibration pass's
         self.feed = OdometryFeed(
             reader, cfg, self.odometry, frame_filter, self.timings, self._dpr_mask
         )
@@ -218,6 +219,7 @@ class SlamPipeline:
             self.config.backend.static_map,
             self.timings,
             self._duration_s,
+            self._doppler_calibration(),
         )
 
     def _scene_infos(self, scenes) -> list[SceneInfo]:
@@ -262,6 +264,17 @@ class SlamPipeline:
         )
         self.feed.odometry = self.odometry
         self.timings.calibration_pass_s += time.perf_counter() - t0
+
+    def _doppler_calibration(self) -> dict | None:
+        """The odometry's calibration over the run; after a calibration pass, the total (what
+        the pass applied plus what the run's filter found left), as ``radarslam odometry``
+        reports it."""
+        from radarslam.odometry.run import total_calibration
+
+        cal = self.feed.calibration
+        if cal is None or self.odometry is self._first_odometry:
+            return cal
+        return total_calibration(self.odometry.config, cal)
 
     def _feed_key_frames(self, infos: Sequence[SceneInfo]) -> None:
         """Odometry over every frame, each key frame handled as it comes (in a forked process

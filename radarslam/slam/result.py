@@ -48,13 +48,23 @@ class SlamResult:
     timings: SlamTimings
     duration_s: float  # sensor time covered by the run
     graph: object = None  # the PoseGraph, for marginals / g2o export
+    #: The odometry's Doppler calibration over the run (``summary.json``: mounting yaws per radar
+    #: with their sigmas; with a calibration pass, what it applied plus what was left)
+    doppler_calibration: dict | None = None
 
     @property
     def accepted_loops(self) -> list[LoopCandidate]:
         return [c for c in self.loops if c.accepted]
 
 
-def assemble_result(state, graph, static_map_config, timings: SlamTimings, duration_s: float):
+def assemble_result(
+    state,
+    graph,
+    static_map_config,
+    timings: SlamTimings,
+    duration_s: float,
+    doppler_calibration: dict | None = None,
+):
     """The :class:`SlamResult` of an optimised graph: each session's key-frame poses (SLAM,
     odometry, ground truth) and the static map built from the SLAM poses."""
     from radarslam.slam.map import StaticMapBuilder
@@ -88,4 +98,5 @@ def assemble_result(state, graph, static_map_config, timings: SlamTimings, durat
         timings=timings,
         duration_s=duration_s,
         graph=graph,
+        doppler_calibration=doppler_calibration,
     )

@@ -27,6 +27,12 @@ def test_run_odometry_only_writes_and_evaluates_a_results_folder(tiny_dataroot, 
     timing = json.loads((out / "timing.json").read_text())
     assert timing["key_frames"] > 30 and timing["loops"]["candidates"] == 0
     assert (out / "map.ply").is_file() and (out / "config.yaml").is_file()
+    # the odometry's mounting-yaw estimate over the run, as in an odometry folder's summary
+    cal = json.loads((out / "summary.json").read_text())["doppler_calibration"]
+    assert set(cal["mounting_yaw_error_deg"]) == set(cal["mounting_yaw_sigma_deg"])
+    assert len(cal["mounting_yaw_error_deg"]) == 5
+    assert all(0 < s < 1.0 for s in cal["mounting_yaw_sigma_deg"].values())
+    assert "estimated radar mounting-yaw errors (deg): FRONT" in result.output
 
 
 def test_synthetic_dataset_is_generated_once(tmp_path, monkeypatch):

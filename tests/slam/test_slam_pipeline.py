@@ -482,11 +482,17 @@ def test_pipelined_run_gives_the_same_result_as_sequential(reader, scenes, recog
         cfg.loops.exclude_recent_s = 3.0
         cfg.loops.max_descriptor_distance = None
         res = SlamPipeline(reader, cfg, recognizer=recognizer(), progress=False).run(scenes)
-        out[pipelined] = (*_poses_and_loops(res), res.timings.frames, res.duration_s)
+        out[pipelined] = (
+            *_poses_and_loops(res),
+            res.timings.frames,
+            res.duration_s,
+            res.doppler_calibration,
+        )
     np.testing.assert_array_equal(out[True][0], out[False][0])
     assert out[True][1] == out[False][1] and out[True][1]
     assert torch.get_num_threads() == threads, "the run gives torch its threads back"
     assert out[True][2:] == out[False][2:] and out[True][2] > 0  # timings came back
+    assert out[True][4]["mounting_yaw_error_deg"]  # and the odometry's calibration
 
 
 class _ReaderThatFails:
@@ -864,6 +870,12 @@ def test_calibration_pass_applies_its_estimate_from_the_first_frame(reader, scen
         np.radians(applied["RADAR_FRONT"]), abs=1e-9
     )
     assert res.timings.calibration_pass_s > 0 and results[1][1].timings.calibration_pass_s == 0
+    # reported as the vehicle's total: what the pass applied plus what the run found left
+    total = res.doppler_calibration
+    assert total["passes"] == 2 and "passes" not in results[1][1].doppler_calibration
+    left = two.feed.calibration["mounting_yaw_error_deg"]
+    for ch, deg in total["mounting_yaw_error_deg"].items():
+        assert deg == pytest.approx(applied[ch] + left[ch], abs=1e-9)
 
 
 class _CountingQueries(_AllCandidates):
