@@ -173,11 +173,13 @@ class OdometryFeed:
 
         cfg = self.config
         timings = self.timings
-        # The key-frame clouds take the run's given calibration (a calibration pass fills it),
-        # not the estimate the odometry folds in at each session: loops register one session's
-        # clouds against another's, and clouds turned by different estimates disagree (turned
-        # per session, the benchmark's clouds linked 2 of 8 sessions instead of 8).
-        cloud_mounting = mounting_rotations(self.odometry.config.mounting_yaw_deg)
+        # The key-frame clouds take the calibration the configuration gives, the same for every
+        # session, never an estimate (the one the odometry folds in at each session, or a
+        # calibration pass's): loops register one session's clouds against another's, and
+        # clouds turned by different estimates disagree (turned per session, the benchmark's
+        # clouds linked 2 of 8 sessions instead of 8; turned by a calibration pass's estimate,
+        # its links depended on a few marginal registrations: one session 100 m off, or 2 of 8).
+        cloud_mounting = mounting_rotations(cfg.odometry.mounting_yaw_deg)
         use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
         for n, info in enumerate(infos):
             yield SessionStart(info.name)
@@ -322,6 +324,104 @@ class OdometryFeed:
             if finished.is_set():
                 all_threads()
             handle(message)
+
+
+# --- the calibration pass ------------------------------------------------------------------------
+
+
+def estimate_calibration(
+    reader, infos, config, frame_filter, max_sigma_deg: float | None, progress: bool = False
+) -> dict:
+    """The odometry (``config``) over the scenes in order, each from a reset as in a SLAM run,
+    until every mounting yaw's sigma is below ``max_sigma_deg`` (None: every scene); its
+    calibration, ``DopplerCalibration.as_dict()``."""
+    from radarslam.odometry.pipeline import RadarOdometry
+
+    odometry = RadarOdometry(config)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(infos), unit="scene", desc="calibration pass", leave=False)
+    try:
+        for info in infos:
+            odometry.reset()
+            for frame in reader.iter_frames(info, filters=frame_filter):
+                odometry.process(frame)
+            if bar is not None:
+                bar.update(1)
+            sigma = odometry.calibration.as_dict().get("mounting_yaw_sigma_deg", {})
+            if max_sigma_deg is not None and sigma and max(sigma.values()) < max_sigma_deg:
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+    return odometry.calibration.as_dict()
+
+
+def calibration_pass(
+    reader,
+    infos,
+    config,
+    frame_filter,
+    max_sigma_deg: float | None,
+    progress: bool = False,
+    forked: bool = True,
+) -> dict:
+    """:func:`estimate_calibration`, with ``forked`` in a forked process as the run's odometry
+    is: kiss-icp may ``abort()`` the process it runs in, which then ends with a clear error
+    instead of taking this one with it."""
+    if not forked:
+        return estimate_calibration(reader, infos, config, frame_filter, max_sigma_deg, progress)
+    import multiprocessing as mp
+    import queue as queue_mod
+
+    ctx = mp.get_context("fork")
+    results = ctx.Queue(maxsize=1)
+    proc = ctx.Process(
+        target=_calibration_process,
+        args=(reader, infos, config, frame_filter, max_sigma_deg, progress, results, os.getpid()),
+        name="slam-calibration",
+    )
+    proc.daemon = True
+    proc.start()
+    try:
+        while True:
+            try:
+                message = results.get(timeout=_REAP_EVERY_S)
+            except queue_mod.Empty:
+                if not proc.is_alive():
+                    raise DataError(
+                        f"the calibration pass process ended without finishing (exit code "
+                        f"{proc.exitcode}; scenes {infos[0].name}..)"
+                    ) from None
+                continue
+            if isinstance(message, Failed):
+                raise message.error
+            return message
+    finally:
+        proc.join(timeout=5.0)
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(timeout=5.0)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+
+
+def _calibration_process(
+    reader, infos, config, frame_filter, max_sigma_deg, progress, results, parent: int
+) -> None:
+    try:
+        helper_process_setup(parent)
+        results.put(
+            estimate_calibration(reader, infos, config, frame_filter, max_sigma_deg, progress)
+        )
+    except BaseException as exc:  # handed to the parent, which raises it
+        _put_error(results, exc, "calibration pass process")
+    finally:
+        results.close()
+        results.join_thread()
 
 
 # --- the helper processes ------------------------------------------------------------------------

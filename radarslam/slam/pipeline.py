@@ -242,26 +242,30 @@ class SlamPipeline:
         return infos
 
     def _calibration_pass(self, infos: Sequence[SceneInfo]) -> None:
-        """With ``odometry.fusion.calibration.passes: 2``, the odometry runs over every scene once
-        to estimate the vehicle's mounting yaws, and the run proper applies them to every sweep
-        from its first frame: the anchor session's odometry, its key-frame clouds and the map
-        built on them no longer carry the mounting errors while the filter converges."""
+        """With ``odometry.fusion.calibration.passes: 2``, the odometry first runs over the
+        scenes (each from a reset, as in the run; until ``calibration_pass_max_sigma_deg``) to
+        estimate the vehicle's mounting yaws, and the run proper applies them to every sweep
+        from its first frame: the anchor session's odometry no longer carries the mounting
+        errors while the filter converges. The key-frame clouds keep the given calibration
+        (:class:`OdometryFeed`)."""
         from radarslam.odometry.pipeline import RadarOdometry
-        from radarslam.odometry.run import run_odometry, second_pass, single_pass
+        from radarslam.odometry.run import second_pass, single_pass
+        from radarslam.slam.feed import calibration_pass
 
         odo = self.config.odometry
         if odo.fusion.calibration.passes < 2 or odo.fusion.calibration.yaw_bias_model != "mounting":
             return
         t0 = time.perf_counter()
-        first = run_odometry(
+        estimate = calibration_pass(
             self.reader,
             infos,
             single_pass(odo, dict(odo.mounting_yaw_deg)),
+            self.feed.frame_filter,
+            self.config.calibration_pass_max_sigma_deg,
             progress=self.progress,
+            forked=self.config.pipelined and can_fork(),
         )
-        self.odometry = RadarOdometry(
-            second_pass(odo, first.calibration), self.odometry.key_frame_gate
-        )
+        self.odometry = RadarOdometry(second_pass(odo, estimate), self.odometry.key_frame_gate)
         self.feed.odometry = self.odometry
         self.timings.calibration_pass_s += time.perf_counter() - t0
 

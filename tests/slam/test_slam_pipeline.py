@@ -511,14 +511,26 @@ class _ReaderThatFails:
             yield frame
 
 
-def test_an_error_in_the_odometry_process_reaches_the_caller(reader, scenes):
+@pytest.mark.parametrize("passes", [1, 2])  # 2: the error comes from the calibration pass
+def test_an_error_in_the_odometry_process_reaches_the_caller(reader, scenes, passes):
     def fail():
         raise DataError("sweep.pcd: truncated")
 
     cfg = SlamConfig(pipelined=True)
     cfg.loops.enabled = False
+    cfg.odometry.fusion.calibration.passes = passes
     with pytest.raises(DataError, match="truncated"):
         SlamPipeline(_ReaderThatFails(reader, fail), cfg, progress=False).run(scenes)
+
+
+def test_a_dead_calibration_pass_process_is_a_clear_error(reader, scenes):
+    import os
+
+    cfg = SlamConfig(pipelined=True)
+    cfg.loops.enabled = False
+    broken = _ReaderThatFails(reader, lambda: os._exit(3))  # as kiss-icp's abort() would
+    with pytest.raises(DataError, match=r"calibration pass process ended .*exit code 3"):
+        SlamPipeline(broken, cfg, progress=False).run(scenes)
 
 
 def test_a_dead_reading_or_odometry_process_is_a_clear_error(reader, scenes):
@@ -526,6 +538,7 @@ def test_a_dead_reading_or_odometry_process_is_a_clear_error(reader, scenes):
 
     cfg = SlamConfig(pipelined=True)
     cfg.loops.enabled = False
+    cfg.odometry.fusion.calibration.passes = 1  # the run's own processes
     broken = _ReaderThatFails(reader, lambda: os._exit(3))
     with pytest.raises(DataError, match=r"radar reading process ended .*exit code 3"):
         SlamPipeline(broken, cfg, progress=False).run(scenes)
@@ -554,6 +567,7 @@ def test_reading_and_odometry_processes_yield_to_the_key_frame_side(reader, scen
     expected = min(ours + HELPER_NICENESS, 19)
     cfg = SlamConfig(pipelined=True)
     cfg.loops.enabled = False
+    cfg.odometry.fusion.calibration.passes = 1  # the run's own processes
 
     def report():
         raise DataError(f"niceness {os.nice(0)}")
@@ -829,9 +843,9 @@ def _yaw_between(a: np.ndarray, b: np.ndarray) -> float:
     return float(yaw_of(invert(a) @ b))
 
 
-def test_key_frame_clouds_use_the_odometry_calibration(reader, scenes):
-    """The mounting yaws the odometry applies to the sweeps reach the key-frame clouds: a map
-    built with the nominal calibration would disagree with the odometry by the mounting errors."""
+def test_key_frame_clouds_use_the_given_mounting_calibration(reader, scenes):
+    """Mounting yaws given in the configuration turn the key-frame clouds' sweeps, as they turn
+    the odometry's."""
     runs = {}
     for deg in (0.0, 2.0):
         cfg = SlamConfig(pipelined=deg > 0)  # the forked feed too
@@ -847,27 +861,48 @@ def test_key_frame_clouds_use_the_odometry_calibration(reader, scenes):
         )
 
 
-def test_calibration_pass_applies_its_estimate_from_the_first_frame(reader, scenes):
-    from radarslam.odometry.run import run_odometry
+def _calibration_after(reader, scenes, config):
+    """The mounting yaws (deg) an odometry run over ``scenes``, each from a reset, estimates."""
+    from radarslam.nuscenes.filters import RadarPointFilter
+    from radarslam.odometry.pipeline import RadarOdometry
 
+    pc = config.points
+    filters = RadarPointFilter(
+        *(
+            None if v is None else frozenset(v)
+            for v in (pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+        )
+    )
+    odo = RadarOdometry(config)
+    for name in scenes:
+        odo.reset()
+        for frame in reader.iter_frames(reader.scene(name), filters=filters):
+            odo.process(frame)
+    return odo.calibration.as_dict()["mounting_yaw_error_deg"]
+
+
+@pytest.mark.parametrize("max_sigma_deg", [None, 100.0])
+def test_calibration_pass_applies_its_estimate_from_the_first_frame(reader, scenes, max_sigma_deg):
     results = {}
     for passes in (1, 2):
-        cfg = SlamConfig()
+        cfg = SlamConfig(calibration_pass_max_sigma_deg=max_sigma_deg)
         cfg.loops.enabled = False
         cfg.odometry.fusion.calibration.passes = passes
         pipeline = SlamPipeline(reader, cfg, progress=False)
         results[passes] = (pipeline, pipeline.run(scenes))
     two, res = results[2]
-    # the estimate of an odometry run over the same scenes, applied to every sweep
-    first = run_odometry(reader, scenes, SlamConfig().odometry, progress=False)
-    estimate = first.calibration["mounting_yaw_error_deg"]
+    # every scene, or (sigma below 100 deg at once) the first one only
+    used = scenes if max_sigma_deg is None else scenes[:1]
+    estimate = _calibration_after(reader, used, SlamConfig().odometry)
     applied = two.odometry.config.mounting_yaw_deg
     assert applied == pytest.approx(estimate, abs=1e-9)
     assert max(abs(v) for v in applied.values()) > 0.1
+    # the odometry runs calibrated, the key-frame clouds keep the given (nominal) calibration
     one = results[1][0]
-    kf_one, kf_two = one.key_frames(scenes[0])[0], two.key_frames(scenes[0])[0]
-    assert _yaw_between(kf_one.ego_from_ref, kf_two.ego_from_ref) == pytest.approx(
-        np.radians(applied["RADAR_FRONT"]), abs=1e-9
+    for kf_one, kf_two in zip(one.key_frames(scenes[0]), two.key_frames(scenes[0]), strict=True):
+        np.testing.assert_array_equal(kf_one.ego_from_ref, kf_two.ego_from_ref)
+    assert not np.allclose(
+        one.key_frames(scenes[0])[-1].odometry_pose, two.key_frames(scenes[0])[-1].odometry_pose
     )
     assert res.timings.calibration_pass_s > 0 and results[1][1].timings.calibration_pass_s == 0
     # reported as the vehicle's total: what the pass applied plus what the run found left
