@@ -331,10 +331,10 @@ class OdometryFeed:
 
 def estimate_calibration(
     reader, infos, config, frame_filter, max_sigma_deg: float | None, progress: bool = False
-) -> dict:
+) -> tuple[dict, bool]:
     """The odometry (``config``) over the scenes in order, each from a reset as in a SLAM run,
-    until every mounting yaw's sigma is below ``max_sigma_deg`` (None: every scene); its
-    calibration, ``DopplerCalibration.as_dict()``."""
+    until every mounting yaw's sigma is below ``max_sigma_deg`` (None: every scene): its
+    calibration (``DopplerCalibration.as_dict()``) and whether the sigmas got there."""
     from radarslam.odometry.pipeline import RadarOdometry
 
     odometry = RadarOdometry(config)
@@ -352,11 +352,11 @@ def estimate_calibration(
                 bar.update(1)
             sigma = odometry.calibration.as_dict().get("mounting_yaw_sigma_deg", {})
             if max_sigma_deg is not None and sigma and max(sigma.values()) < max_sigma_deg:
-                break
+                return odometry.calibration.as_dict(), True
     finally:
         if bar is not None:
             bar.close()
-    return odometry.calibration.as_dict()
+    return odometry.calibration.as_dict(), max_sigma_deg is None
 
 
 def calibration_pass(
@@ -367,7 +367,7 @@ def calibration_pass(
     max_sigma_deg: float | None,
     progress: bool = False,
     forked: bool = True,
-) -> dict:
+) -> tuple[dict, bool]:
     """:func:`estimate_calibration`, with ``forked`` in a forked process as the run's odometry
     is: kiss-icp may ``abort()`` the process it runs in, which then ends with a clear error
     instead of taking this one with it."""

@@ -913,6 +913,23 @@ def test_calibration_pass_applies_its_estimate_from_the_first_frame(reader, scen
         assert deg == pytest.approx(applied[ch] + left[ch], abs=1e-9)
 
 
+def test_a_calibration_pass_that_does_not_converge_is_not_applied(reader, scenes, caplog):
+    runs = {}
+    for passes in (1, 2):
+        cfg = SlamConfig(calibration_pass_max_sigma_deg=1e-6)  # never that sure
+        cfg.loops.enabled = False
+        cfg.odometry.fusion.calibration.passes = passes
+        pipeline = SlamPipeline(reader, cfg, progress=False)
+        with caplog.at_level("WARNING", logger="radarslam.slam"):
+            runs[passes] = (pipeline, pipeline.run(scenes))
+    two, res = runs[2]
+    assert two.odometry.config.mounting_yaw_deg == {}
+    assert res.timings.calibration_pass_s > 0 and "passes" not in res.doppler_calibration
+    assert "calibration pass: the mounting yaws are known to" in caplog.text
+    for a, b in zip(runs[1][1].sessions, res.sessions, strict=True):
+        np.testing.assert_array_equal(a.slam_poses, b.slam_poses)  # the one-pass run
+
+
 class _CountingQueries(_AllCandidates):
     """Counts the queries; proposes nothing (no loop resets the spacing rules)."""
 
