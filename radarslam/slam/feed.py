@@ -385,6 +385,7 @@ def calibration_pass(
     )
     proc.daemon = True
     proc.start()
+    finished = False
     try:
         while True:
             try:
@@ -396,10 +397,13 @@ def calibration_pass(
                         f"{proc.exitcode}; scenes {infos[0].name}..)"
                     ) from None
                 continue
+            finished = True
             if isinstance(message, Failed):
                 raise message.error
             return message
     finally:
+        if not finished:  # Ctrl-C or an error here: the helper ignores SIGINT, stop it now
+            proc.terminate()
         proc.join(timeout=5.0)
         if proc.is_alive():
             proc.terminate()

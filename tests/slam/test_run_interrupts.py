@@ -62,6 +62,8 @@ def _new_run_json(proc, out: Path, old_inode: int) -> bool:
 
 
 MOMENTS = {
+    # the calibration pass (the preset's), the first helper process and the only one then
+    "calibration": lambda proc, out, inode: len(_children(proc.pid)) == 1,
     # the odometry and reading processes running; Ctrl-C pressed twice
     "slam": lambda proc, out, inode: len(_children(proc.pid)) == 2,
     # the results being written (their hidden folder exists)
@@ -92,11 +94,14 @@ def test_ctrl_c_leaves_the_previous_folder_or_the_complete_new_one(
             assert time.monotonic() < deadline
             time.sleep(0.002)
         os.killpg(proc.pid, signal.SIGINT)
+        pressed = time.monotonic()
         if moment == "slam":
             time.sleep(0.1)
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=60)
+        if moment == "calibration":  # the helper is stopped at once, not waited for
+            assert time.monotonic() - pressed < 4.0
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
