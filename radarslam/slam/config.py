@@ -60,9 +60,8 @@ class LoopDetectionConfig(StrictModel):
     #: AutoPlace (and the turned search) query a key frame only this far (odometry) from the
     #: session's last queried one: a stopped car sees one place, and querying it at every key
     #: frame gives a look-alike one more chance per key frame to pass verification with no new
-    #: evidence (on the benchmark with a calibration pass, two votes 12 s apart at one stop
-    #: linked a session 100 m off at a right angle). 0: every key frame. At 1 m seed 7's SLAM
-    #: ATE is 0.46 m against 1.54 m, but the city subset's recall falls from 0.833 to 0.660.
+    #: evidence. 0: every key frame. At 1 m (one odometry pass) seed 7's SLAM ATE is 0.46 m
+    #: against 1.54 m, but the city subset's recall falls from 0.833 to 0.660.
     recognition_min_travel_m: float = Field(0.0, ge=0.0)
     #: When odometry (same session) or the map (both sessions placed) predicts the relative pose,
     #: verification searches only this far around the prediction, at its heading: ~4x cheaper
@@ -142,7 +141,7 @@ class LoopDetectionConfig(StrictModel):
 def _slam_odometry() -> OdometryConfig:
     """The odometry of a SLAM run: the odometry's defaults with a calibration pass (a run of
     many sessions of one vehicle converges on its mounting yaws; on the synthetic long-scene
-    benchmark and seeds the odometry's joint ATE falls 20-55 %)."""
+    benchmark and seeds 7, 11 and 21 the odometry's joint ATE falls 25-55 %)."""
     cfg = OdometryConfig()
     cfg.fusion.calibration.passes = 2
     return cfg

@@ -127,7 +127,8 @@ class SlamPipeline:
             _frozen(pc.invalid_states), _frozen(pc.dynprop_states), _frozen(pc.ambig_states)
         )
         self.timings = SlamTimings()
-        self._first_odometry = self.odometry  # replaced by a calibration pass's
+        #: Whether a calibration pass's estimate was applied to this run's odometry.
+        self._calibration_applied = False
         self.feed = OdometryFeed(
             reader, cfg, self.odometry, frame_filter, self.timings, self._dpr_mask
         )
@@ -281,6 +282,7 @@ class SlamPipeline:
             return
         self.odometry = RadarOdometry(second_pass(odo, estimate), self.odometry.key_frame_gate)
         self.feed.odometry = self.odometry
+        self._calibration_applied = True
 
     def _doppler_calibration(self) -> dict | None:
         """The odometry's calibration over the run; after a calibration pass, the total (what
@@ -289,7 +291,7 @@ class SlamPipeline:
         from radarslam.odometry.run import total_calibration
 
         cal = self.feed.calibration
-        if cal is None or self.odometry is self._first_odometry:
+        if cal is None or not self._calibration_applied:
             return cal
         return total_calibration(self.odometry.config, cal)
 
