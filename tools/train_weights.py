@@ -116,6 +116,7 @@ def export_weights(
         },
         "git": git_state(git_commit),
         "trained_at_commit": meta.get("git_commit"),
+        **_init_weights_lineage(train_cfg),
         "python": platform.python_version(),
         **(extra or {}),
     }
@@ -126,6 +127,26 @@ def export_weights(
     info["size_bytes"] = weights.stat().st_size
     write_json_atomic(weights.with_suffix(".json"), info)
     return info
+
+
+def _init_weights_lineage(train_cfg: dict[str, Any] | None) -> dict[str, Any]:
+    """For fine-tuned weights: what they started from (digest, validation and data of the start)."""
+    from radarslam.place_recognition.checkpoint import read_checkpoint
+
+    start = (train_cfg or {}).get("init_weights_from")
+    if not start:
+        return {}
+    payload = read_checkpoint(start)
+    meta = payload.get("meta") or {}
+    # a run's best.pt records epoch and val_recall; exported weights the selection and their data
+    keep = ("epoch", "val_recall", "selected_epoch", "val_recall_at_selection", "data", "git")
+    return {
+        "fine_tuned_from": {
+            "file": str(start),
+            "weights_digest": payload["digest"],
+            **{k: meta[k] for k in keep if k in meta},
+        }
+    }
 
 
 def ensure_dataroot(args) -> Path | None:

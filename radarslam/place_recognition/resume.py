@@ -1,4 +1,5 @@
-"""Starting a run from a checkpoint: another model's spatial encoder, or this run's last state."""
+"""Starting a run from a checkpoint: another model's weights or spatial encoder, or this run's
+last state."""
 
 from __future__ import annotations
 
@@ -8,9 +9,23 @@ import torch
 
 from radarslam.errors import CheckpointError
 
-from .checkpoint import read_checkpoint
+from .checkpoint import load_model, read_checkpoint
 from .models import ModelConfig
 from .train_config import RESUMABLE_CHANGES, TrainConfig
+
+
+def init_weights(net: torch.nn.Module, path: str | Path) -> int:
+    """Copy every weight of checkpoint ``path`` into ``net``; returns the count of tensors.
+
+    The checkpoint must hold the same architecture as ``net`` (its preset label aside); anything
+    else is a one-line CheckpointError naming the file and the differing settings.
+    """
+    cfg = net.cfg
+    assert isinstance(cfg, ModelConfig)
+    source, _, _ = load_model(path, "cpu", expect=cfg)
+    state = source.state_dict()
+    net.load_state_dict(state, strict=True)
+    return len(state)
 
 
 def init_encoder(net: torch.nn.Module, path: str | Path) -> int:

@@ -54,7 +54,7 @@ from .descriptors import (
 )
 from .mining import Triplet, _triplet_step_loss, mine_triplets
 from .models import ModelConfig, build_model
-from .resume import _load_resume_state, init_encoder
+from .resume import _load_resume_state, init_encoder, init_weights
 from .runtime import _Dist, _epoch_rng, _setup_distributed, resolve_device, seed_everything
 from .train_config import RESUMABLE_CHANGES, TrainConfig, TrainResult, load_train_config
 
@@ -136,6 +136,8 @@ def train(
         net = build_model(model_cfg)
         if train_cfg.init_encoder_from and not resume:
             init_encoder(net, train_cfg.init_encoder_from)
+        if train_cfg.init_weights_from and not resume:
+            init_weights(net, train_cfg.init_weights_from)
         net = net.to(device, memory_format=torch.channels_last)
         optimizer = torch.optim.SGD(
             net.parameters(),

@@ -69,9 +69,17 @@ class TrainConfig(StrictModel):
     #: learnt jointly with a randomly initialised trunk settles below the SE alone on DPR'd data.
     #: Ignored when resuming (the run's own weights win).
     init_encoder_from: str | None = None
+    #: Start every layer from this checkpoint, a model of the same architecture: fine-tuning
+    #: trained weights (the shipped ones, say) on new data. Ignored when resuming.
+    init_weights_from: str | None = None
 
     @model_validator(mode="after")
     def _check(self) -> TrainConfig:
+        if self.init_encoder_from and self.init_weights_from:
+            raise ValueError(
+                "init_encoder_from and init_weights_from are exclusive (the second sets every "
+                "layer, the encoder included)"
+            )
         if self.select_after_epoch >= self.epochs:
             raise ValueError(
                 f"select_after_epoch={self.select_after_epoch} must be below epochs={self.epochs} "

@@ -260,7 +260,7 @@ class SlamPipeline:
             return
         t0 = time.perf_counter()
         limit = self.config.calibration_pass_max_sigma_deg
-        estimate, converged = calibration_pass(
+        found = calibration_pass(
             self.reader,
             infos,
             single_pass(odo, dict(odo.mounting_yaw_deg)),
@@ -270,17 +270,23 @@ class SlamPipeline:
             forked=self.config.pipelined and can_fork(),
         )
         self.timings.calibration_pass_s += time.perf_counter() - t0
-        if not converged:
-            sigma = estimate.get("mounting_yaw_sigma_deg", {})
+        if not found.converged:
             log.warning(
-                "calibration pass: the mounting yaws are known to %.2f deg at best after every "
-                "scene (calibration_pass_max_sigma_deg: %s); the run starts from the configured "
-                "calibration and estimates it as it goes",
-                max(sigma.values(), default=float("nan")),
+                "calibration pass: the mounting yaws are known to %.2f deg at best after %d of "
+                "%d scenes%s (calibration_pass_max_sigma_deg: %s); the run starts from the "
+                "configured calibration and estimates it as it goes",
+                found.max_sigma_deg,
+                found.scenes_used,
+                found.scenes_total,
+                ", too far from the limit for the rest to get there"
+                if found.scenes_used < found.scenes_total
+                else "",
                 limit,
             )
             return
-        self.odometry = RadarOdometry(second_pass(odo, estimate), self.odometry.key_frame_gate)
+        self.odometry = RadarOdometry(
+            second_pass(odo, found.calibration), self.odometry.key_frame_gate
+        )
         self.feed.odometry = self.odometry
         self._calibration_applied = True
 

@@ -22,6 +22,7 @@ from radarslam.place_recognition.train import (
     _triplet_step_loss,
     compute_descriptors,
     init_encoder,
+    init_weights,
     load_train_config,
     mine_triplets,
     recall_at_n_from_descriptors,
@@ -400,6 +401,45 @@ def test_init_encoder_refuses_another_encoder(se_run, tmp_path):
         init_encoder(build_model(TINY), tmp_path / "nope.pt")
 
 
+def test_init_weights_copies_every_layer(full_run):
+    result, _ = full_run
+    trained, _, _ = load_model(result.best_checkpoint)
+    torch.manual_seed(7)
+    net = build_model(TINY)
+    assert init_weights(net, result.best_checkpoint) == len(trained.state_dict())
+    for k, v in trained.state_dict().items():
+        assert torch.equal(net.state_dict()[k], v), k
+
+
+def test_fine_tuning_starts_from_the_checkpoint(data, full_run, tmp_path):
+    result, _ = full_run
+    ckpt = str(result.best_checkpoint)
+    cfg = TrainConfig(**{**FAST, "epochs": 1, "seed": 99, "lr": 0.001, "init_weights_from": ckpt})
+    tuned_run = train(cfg, TINY, data, tmp_path, progress=False)
+    assert read_checkpoint(tuned_run.best_checkpoint)["train_config"]["init_weights_from"] == ckpt
+    start, _, _ = load_model(result.best_checkpoint)
+    tuned, _, _ = load_model(tuned_run.best_checkpoint)
+    torch.manual_seed(99)
+    fresh = build_model(TINY)
+    for name, w_start in start.state_dict().items():
+        if not w_start.is_floating_point() or name.endswith("bias"):
+            continue
+        w_tuned, w_fresh = tuned.state_dict()[name], fresh.state_dict()[name]
+        assert (w_tuned - w_start).norm() < 0.3 * (w_fresh - w_start).norm(), name
+
+
+def test_init_weights_refuses_another_architecture(full_run, tmp_path):
+    result, _ = full_run
+    wider = TINY.model_copy(update={"widths": [4, 16]})
+    wrong = r"best\.pt: checkpoint model does not match .*widths"
+    with pytest.raises(CheckpointError, match=wrong):
+        init_weights(build_model(wider), result.best_checkpoint)
+    with pytest.raises(CheckpointError, match=r"nope\.pt: checkpoint file does not exist"):
+        init_weights(build_model(TINY), tmp_path / "nope.pt")
+    with pytest.raises(ValueError, match="init_encoder_from and init_weights_from are exclusive"):
+        TrainConfig(init_encoder_from="a.pt", init_weights_from="b.pt")
+
+
 def test_train_weights_two_stage(data, tmp_path, monkeypatch):
     import json
 
@@ -425,6 +465,31 @@ def test_train_weights_two_stage(data, tmp_path, monkeypatch):
     (tmp_path / "se.yaml").write_text(yaml.safe_dump(se.model_dump(mode="json")))
     argv[3] = str(tmp_path / "se.yaml")
     assert tool.main(argv) == 2  # an SE model has no TE to train in a second stage
+
+
+def test_train_weights_records_what_fine_tuning_started_from(data, full_run, tmp_path, monkeypatch):
+    import json
+
+    import yaml
+
+    from radarslam.place_recognition import dataset as pr_dataset
+
+    result, _ = full_run
+    tool = _train_weights_tool()
+    monkeypatch.setattr(pr_dataset, "load_prepared", lambda root: data)
+    (tmp_path / "model.yaml").write_text(yaml.safe_dump(TINY.model_dump(mode="json")))
+    (tmp_path / "train.yaml").write_text(yaml.safe_dump({**FAST, "epochs": 1, "lr": 0.001}))
+    weights = tmp_path / "w.pt"
+    argv = ["--prepared", str(tmp_path), "--model", str(tmp_path / "model.yaml"), "--train",
+            str(tmp_path / "train.yaml"), "--work-dir", str(tmp_path / "work"), "--weights",
+            str(weights), "--quiet", "--set-train",
+            f"init_weights_from={result.best_checkpoint}"]  # fmt: skip
+    assert tool.main(argv) == 0
+    saved = json.loads(weights.with_suffix(".json").read_text())
+    start = saved["fine_tuned_from"]
+    assert start["file"] == str(result.best_checkpoint)
+    assert start["weights_digest"] == read_checkpoint(result.best_checkpoint)["digest"]
+    assert start["epoch"] == read_checkpoint(result.best_checkpoint)["meta"]["epoch"]
 
 
 # ---------------------------------------------------------------------------------------------

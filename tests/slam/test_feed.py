@@ -1,0 +1,82 @@
+"""The SLAM feed's calibration pass: when it stops, and what it reports."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import radarslam.odometry.pipeline as odometry_pipeline
+from radarslam.slam.feed import PASS_PROJECTION_SLACK, estimate_calibration
+from radarslam.types import SceneInfo
+
+
+class _Calibration:
+    def __init__(self, sigma: float):
+        self.sigma = sigma
+
+    def as_dict(self) -> dict:
+        return {"mounting_yaw_sigma_deg": {"RADAR_FRONT": self.sigma, "RADAR_BACK_LEFT": 0.01}}
+
+
+def _fake_odometry(sigmas: list[float]):
+    """An odometry whose sigma after scene k is ``sigmas[k]`` (one frame per scene)."""
+
+    class FakeOdometry:
+        def __init__(self, config):
+            self.scene = -1
+            self.calibration = _Calibration(np.nan)
+
+        def reset(self) -> None:
+            self.scene += 1
+
+        def process(self, frame) -> None:
+            self.calibration = _Calibration(sigmas[self.scene])
+
+    return FakeOdometry
+
+
+class _Reader:
+    def iter_frames(self, info, filters=None):
+        yield info.name
+
+
+def _scenes(n: int, samples: int = 40) -> list[SceneInfo]:
+    return [
+        SceneInfo(f"scene-{i:04d}", f"t{i}", "log", "city", "2026-01-01", "car", samples, "a", "b")
+        for i in range(n)
+    ]
+
+
+def _run(monkeypatch, sigmas, max_sigma_deg, n=None):
+    monkeypatch.setattr(odometry_pipeline, "RadarOdometry", _fake_odometry(sigmas))
+    return estimate_calibration(_Reader(), _scenes(n or len(sigmas)), None, None, max_sigma_deg)
+
+
+def test_the_pass_stops_once_below_the_limit(monkeypatch):
+    # 1/sqrt(drive time): 0.3 after one scene of nine reaches 0.1 after the ninth
+    sigmas = [0.3 / np.sqrt(k) for k in range(1, 10)]
+    found = _run(monkeypatch, [*sigmas[:-1], 0.0999], 0.1)
+    assert found.converged and found.scenes_used == found.scenes_total == 9
+    assert found.max_sigma_deg == pytest.approx(0.0999)
+    found = _run(monkeypatch, [0.5, 0.05, 0.04], 0.1)
+    assert found.converged and found.scenes_used == 2
+
+
+def test_the_pass_stops_when_the_scenes_left_cannot_get_there(monkeypatch):
+    # after 2 of 6 equal scenes, 0.4 projects to 0.4 * sqrt(2/6) = 0.23 > 2 x 0.1
+    found = _run(monkeypatch, [1.0, 0.4, 0.3, 0.3, 0.3, 0.3], 0.1)
+    assert not found.converged and (found.scenes_used, found.scenes_total) == (2, 6)
+    assert found.max_sigma_deg == pytest.approx(0.4)
+    # within the slack it goes on: 0.3 * sqrt(2/6) = 0.17 < 0.2
+    found = _run(monkeypatch, [1.0, 0.3, 0.25, 0.2, 0.15, 0.12], 0.1)
+    assert not found.converged and found.scenes_used == 6
+    # the first scene alone never stops it (the filter may not have left its prior yet)
+    found = _run(monkeypatch, [1.0, 0.09], 0.1)
+    assert found.converged and found.scenes_used == 2
+    assert PASS_PROJECTION_SLACK == 2.0
+
+
+def test_without_a_limit_the_pass_runs_every_scene(monkeypatch):
+    found = _run(monkeypatch, [1.0, 0.9, 0.8, 0.7], None)
+    assert found.converged and found.scenes_used == 4
+    assert found.max_sigma_deg == pytest.approx(0.7)
