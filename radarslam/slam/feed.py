@@ -10,6 +10,7 @@ key-frame work (recognition, registration, iSAM2) overlap, with identical result
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import sys
@@ -284,12 +285,7 @@ class OdometryFeed:
                 proc.join()
         finally:
             for proc in procs.values():
-                if proc.is_alive():
-                    proc.terminate()  # SIGTERM ends a helper at once (helper_process_setup)
-                    proc.join(timeout=5.0)
-                if proc.is_alive():
-                    proc.kill()
-                    proc.join()
+                _end_helper(proc, stop_now=True)
 
     def _consume(self, infos, handle, procs, messages, finished, all_threads) -> None:
         """Hand the odometry process's messages to ``handle`` until :class:`OdometryDone`."""
@@ -382,12 +378,12 @@ def estimate_calibration(
                 bar.update(1)
             if max_sigma_deg is None:
                 continue
-            sigma = result(i + 1, False).max_sigma_deg
-            if sigma < max_sigma_deg:
-                return result(i + 1, True)
-            projected = sigma * np.sqrt(samples[i] / samples[-1])
+            found = result(i + 1, False)
+            if found.max_sigma_deg < max_sigma_deg:
+                return dataclasses.replace(found, converged=True)
+            projected = found.max_sigma_deg * np.sqrt(samples[i] / samples[-1])
             if i >= 1 and projected > PASS_PROJECTION_SLACK * max_sigma_deg:
-                return result(i + 1, False)
+                return found
     finally:
         if bar is not None:
             bar.close()
@@ -411,6 +407,8 @@ def calibration_pass(
     import multiprocessing as mp
     import queue as queue_mod
 
+    from radarslam.io.atomic import interrupts_deferred
+
     ctx = mp.get_context("fork")
     results = ctx.Queue(maxsize=1)
     proc = ctx.Process(
@@ -419,7 +417,8 @@ def calibration_pass(
         name="slam-calibration",
     )
     proc.daemon = True
-    proc.start()
+    with interrupts_deferred():  # as in OdometryFeed.run_forked
+        proc.start()
     finished = False
     try:
         while True:
@@ -437,15 +436,8 @@ def calibration_pass(
                 raise message.error
             return message
     finally:
-        if not finished:  # Ctrl-C or an error here: the helper ignores SIGINT, stop it now
-            proc.terminate()
-        proc.join(timeout=5.0)
-        if proc.is_alive():
-            proc.terminate()
-            proc.join(timeout=5.0)
-        if proc.is_alive():
-            proc.kill()
-            proc.join()
+        # Ctrl-C or an error here: the helper ignores SIGINT, stop it now
+        _end_helper(proc, stop_now=not finished)
 
 
 def _calibration_process(
@@ -464,6 +456,17 @@ def _calibration_process(
 
 
 # --- the helper processes ------------------------------------------------------------------------
+
+
+def _end_helper(proc, stop_now: bool) -> None:
+    """Wait for a helper process to end; with ``stop_now`` SIGTERM it first (which ends it at
+    once, :func:`helper_process_setup`); one still alive after 5 s is killed."""
+    if stop_now and proc.is_alive():
+        proc.terminate()
+    proc.join(timeout=5.0)
+    if proc.is_alive():
+        proc.kill()
+        proc.join()
 
 
 @contextmanager
