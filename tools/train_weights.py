@@ -105,6 +105,11 @@ def export_weights(
         "train_config": train_cfg,
         "selected_epoch": meta.get("epoch"),
         "val_recall_at_selection": selection,
+        **(
+            {"val_turned_recall_at_selection": meta["val_turned_recall"]}
+            if "val_turned_recall" in meta
+            else {}
+        ),
         "data": {
             "root": str(getattr(data, "root", "")),
             "n_database": len(data.splits["database"]),

@@ -115,6 +115,7 @@ def eval_cmd(
         baseline_ranking_fn,
         checkpoint_ranking_fn,
         evaluate_method,
+        evaluate_turned,
         write_results,
     )
     from radarslam.place_recognition.outputs import check_output_dir
@@ -134,6 +135,11 @@ def eval_cmd(
     results = evaluate_method(
         data, name, fn, cfg, split, rerank_cfg=cfg.rerank if rerank else None, tune_on_val=tune
     )
+    if checkpoint is not None:  # SLAM's turned search, for a street driven the other way round
+        turned = evaluate_turned(
+            data, name, checkpoint_ranking_fn(data, checkpoint, cfg, turned=True)[1], cfg, split
+        )
+        results += [turned] if turned is not None else []
     paths = write_results(results, out, stem=f"{name}_{split}".replace("+", "_"))
     _echo_table([r.row() for r in results])
     typer.echo(f"wrote {paths['md']}")

@@ -313,6 +313,15 @@ class PreparedData:
         hits = self._tree().query_ball_point(self.positions_xy[int(query_idx)], self.pos_radius_m)
         return np.sort(db[np.asarray(hits, dtype=np.int64)])
 
+    def reversed_positives(self, query_idx: int, max_heading_error_deg: float) -> np.ndarray:
+        """Positives driven the other way round: heading within ``max_heading_error_deg`` of the
+        query's turned by 180 deg. What the query's turned images
+        (:func:`~.descriptors.turn_images`) should retrieve."""
+        q = int(query_idx)
+        pos = self.positives(q)
+        off = np.angle(np.exp(1j * (self.yaw_rad[pos] - self.yaw_rad[q] - np.pi)))
+        return pos[np.abs(off) <= np.deg2rad(max_heading_error_deg)]
+
     def negatives_pool(self, query_idx: int) -> np.ndarray:
         """DB frame indices farther than ``neg_radius_m`` from the query frame."""
         db = self.splits["database"]

@@ -7,6 +7,7 @@ validation) and by evaluation.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -59,12 +60,30 @@ class FrameStore:
     def __len__(self) -> int:
         return len(self.array)
 
-    def get(self, idx: np.ndarray) -> torch.Tensor:
+    def get(self, idx: np.ndarray, turned: bool = False) -> torch.Tensor:
+        """Frames ``idx`` as floats; ``turned``: as seen turned by 180 deg (:func:`turn_images`)."""
         if self.tensor is not None:
             sel = torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(self.device)
-            return self.tensor.index_select(0, sel).float()
-        out = torch.from_numpy(np.ascontiguousarray(self.array[idx]))
-        return out.to(self.device, non_blocking=True).float()
+            out = self.tensor.index_select(0, sel).float()
+        else:
+            out = torch.from_numpy(np.ascontiguousarray(self.array[idx]))
+            out = out.to(self.device, non_blocking=True).float()
+        return turn_images(out) if turned else out
+
+
+def turn_images(images: torch.Tensor) -> torch.Tensor:
+    """Images (..., H, W) as rasterised (:func:`~.image.rasterise`) from their points turned by
+    180 deg about the sensor, (x, y) -> (-x, -y), exactly but for points on a pixel boundary
+    (rounding half up is not symmetric): pixel (r, c) moves to
+    (2 (H // 2) - r, 2 (W // 2) - c), so an even-sized image is mirrored about its centre pixel
+    and its first row and column stay empty. AutoPlace's turned search in SLAM queries such
+    images for a street driven the other way round."""
+    h, w = images.shape[-2:]
+    dr, dc = 2 * (h // 2) - (h - 1), 2 * (w // 2) - (w - 1)
+    flipped = images.flip(-2, -1)
+    out = torch.zeros_like(images)
+    out[..., dr:, dc:] = flipped[..., : h - dr, : w - dc]
+    return out
 
 
 def _check_data(data: Any, cfg: ModelConfig) -> None:
@@ -99,8 +118,10 @@ def _descriptors(
     progress: bool = False,
     desc: str = "descriptors",
     amp: bool = False,
+    turned: bool = False,
 ) -> torch.Tensor:
-    """(M, D) descriptors on the store's device; every distinct frame is encoded once."""
+    """(M, D) descriptors on the store's device; every distinct frame is encoded once.
+    ``turned``: of the sequences' images turned by 180 deg (:func:`turn_images`)."""
     from tqdm.auto import tqdm
 
     net = _unwrap(model)
@@ -115,7 +136,9 @@ def _descriptors(
             feats = torch.empty((len(frames), net.cfg.frame_feature_dim()), device=store.device)
             starts = range(0, len(frames), batch_size)
             for s in tqdm(starts, desc=desc, disable=not progress, leave=False, unit="batch"):
-                feats[s : s + batch_size] = net.encode_frames(store.get(frames[s : s + batch_size]))
+                feats[s : s + batch_size] = net.encode_frames(
+                    store.get(frames[s : s + batch_size], turned=turned)
+                )
             out = torch.empty((len(seqs), net.cfg.output_dim()), device=store.device)
             agg = max(batch_size, 256)
             for s in range(0, len(seqs), agg):
@@ -132,14 +155,18 @@ def compute_descriptors(
     batch_size: int = 32,
     device: str | torch.device = "cpu",
     progress: bool = False,
+    turned: bool = False,
 ) -> np.ndarray:
-    """(M, D) float32 unit descriptors of the sequences ``data.sequences[indices, -seq_len:]``."""
+    """(M, D) float32 unit descriptors of the sequences ``data.sequences[indices, -seq_len:]``
+    (``turned``: of their images turned by 180 deg)."""
     net = _unwrap(model)
     dev = torch.device(device) if not isinstance(device, torch.device) else device
     net.to(dev)
     _check_sequences_only(data, net.cfg)
     store = FrameStore(data.images, dev, net.cfg, source=str(getattr(data, "root", "data")))
-    out = _descriptors(net, store, data.sequences, np.asarray(indices), batch_size, progress)
+    out = _descriptors(
+        net, store, data.sequences, np.asarray(indices), batch_size, progress, turned=turned
+    )
     return out.float().cpu().numpy()
 
 
@@ -163,10 +190,13 @@ def recall_at_n_from_descriptors(
     query_frames: np.ndarray,
     data: Any,
     ns: list[int],
+    positives: Callable[[int], np.ndarray] | None = None,
 ) -> dict[int, float]:
-    """Fraction of queries with a true positive (``data.positives``) among their top-N matches."""
+    """Fraction of queries with a true positive (``positives``, by default ``data.positives``)
+    among their top-N matches."""
     from .metrics import recall_at_n
 
+    positives_of = data.positives if positives is None else positives
     k = min(max(ns), len(db_frames))
     hits = np.zeros((len(query_frames), k), dtype=bool)
     db_frames = np.asarray(db_frames)
@@ -174,5 +204,5 @@ def recall_at_n_from_descriptors(
         top = torch.topk(_pairwise_l2(q_desc[s : s + 512], db_desc), k, largest=False).indices
         top = db_frames[top.cpu().numpy()]
         for i, q in enumerate(query_frames[s : s + 512]):
-            hits[s + i] = np.isin(top[i], np.asarray(data.positives(int(q))))
+            hits[s + i] = np.isin(top[i], np.asarray(positives_of(int(q))))
     return recall_at_n(hits, ns)

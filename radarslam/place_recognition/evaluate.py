@@ -111,9 +111,22 @@ def apply_rcshr(data: PreparedData, ranking: Ranking, cfg: RerankConfig, _hists=
 
 
 def evaluate_ranking(
-    data: PreparedData, ranking: Ranking, cfg: EvalConfig, name: str, split: str = "test"
+    data: PreparedData,
+    ranking: Ranking,
+    cfg: EvalConfig,
+    name: str,
+    split: str = "test",
+    positives: Callable[[int], np.ndarray] | None = None,
 ) -> EvalResult:
-    correct = data.is_positive(ranking.query_frames, ranking.db_frames)
+    """Recall@N, PR curve, max F1 and AP of a ranking; a retrieved frame is correct when it is a
+    positive of its query (``positives(query)``; by default any DB frame within the radius)."""
+    if positives is None:
+        correct = data.is_positive(ranking.query_frames, ranking.db_frames)
+    else:
+        correct = np.stack(
+            [np.isin(row, positives(int(q))) for q, row in
+             zip(ranking.query_frames, ranking.db_frames, strict=True)]
+        ) if len(ranking.query_frames) else np.zeros(ranking.db_frames.shape, bool)  # fmt: skip
     if correct.shape[1] == 0:
         raise DataError("the ranking retrieved no database frame")
     rec = recall_at_n(correct, cfg.recall_at)
@@ -235,16 +248,45 @@ def evaluate_method(
     return results
 
 
+def evaluate_turned(
+    data: PreparedData,
+    name: str,
+    turned_ranking_fn: Callable[[np.ndarray, int], Ranking],
+    cfg: EvalConfig,
+    split: str = "test",
+    max_heading_error_deg: float = 45.0,
+) -> EvalResult | None:
+    """The turned search of SLAM (``loops.reversed_search``) on its own: every query of ``split``
+    that has positives driven the other way round, ranked from its images turned by 180 deg
+    (``turned_ranking_fn``); a hit is such a positive. None when no query has one."""
+    queries = _split(data, split)
+    queries = np.array(
+        [q for q in queries if len(data.reversed_positives(int(q), max_heading_error_deg))],
+        dtype=np.int64,
+    )
+    if not len(queries):
+        return None
+    ranking = turned_ranking_fn(queries, max(cfg.recall_at))
+    return evaluate_ranking(
+        data, ranking, cfg, f"{name} turned", split,
+        positives=lambda q: data.reversed_positives(q, max_heading_error_deg),
+    )  # fmt: skip
+
+
 def descriptor_ranking_fn(
-    data: PreparedData, describe: Callable[[np.ndarray], np.ndarray], cfg: EvalConfig
+    data: PreparedData,
+    describe: Callable[[np.ndarray], np.ndarray],
+    cfg: EvalConfig,
+    describe_queries: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Callable[[np.ndarray, int], Ranking]:
-    """A ranking function from ``describe(frames) -> (M, D)``; the DB is described once."""
+    """A ranking function from ``describe(frames) -> (M, D)`` (queries through
+    ``describe_queries`` if given); the DB is described once."""
     cache: dict[str, np.ndarray] = {}
 
     def fn(query_frames: np.ndarray, k: int) -> Ranking:
         if "db" not in cache:
             cache["db"] = describe(data.splits["database"])
-        q = describe(query_frames)
+        q = (describe_queries or describe)(query_frames)
         return descriptor_ranking(data, cache["db"], q, query_frames, k, cfg.retrieval)
 
     return fn
@@ -317,19 +359,31 @@ def baseline_ranking_fn(
     return "M2DP", descriptor_ranking_fn(data, lambda f: m2dp_descriptors(data, f, mc), cfg)
 
 
-def model_describe_fn(model, data: PreparedData, batch_size: int = 32, device: str = "cpu"):
-    """``frames -> (M, D)`` descriptors of the sequences ending at ``frames``."""
+def model_describe_fn(
+    model, data: PreparedData, batch_size: int = 32, device: str = "cpu", turned: bool = False
+):
+    """``frames -> (M, D)`` descriptors of the sequences ending at ``frames`` (``turned``: of
+    their images turned by 180 deg)."""
     from radarslam.place_recognition.train import compute_descriptors
 
-    return lambda frames: compute_descriptors(model, data, frames, batch_size, device)
+    return lambda frames: compute_descriptors(
+        model, data, frames, batch_size, device, turned=turned
+    )
 
 
 def checkpoint_ranking_fn(
-    data: PreparedData, checkpoint: str | Path, cfg: EvalConfig, device: str = "cpu"
+    data: PreparedData,
+    checkpoint: str | Path,
+    cfg: EvalConfig,
+    device: str = "cpu",
+    turned: bool = False,
 ) -> tuple[str, Callable[[np.ndarray, int], Ranking]]:
+    """(name, ranking function) of a checkpoint; ``turned``: queries described from their
+    images turned by 180 deg (:func:`evaluate_turned`)."""
     from radarslam.place_recognition.checkpoint import load_model
 
     model, model_cfg, _ = load_model(checkpoint, device=device)
     name = str(getattr(model_cfg, "preset", "") or Path(checkpoint).stem)
     describe = model_describe_fn(model, data, cfg.batch_size, device)
-    return name, descriptor_ranking_fn(data, describe, cfg)
+    queries = model_describe_fn(model, data, cfg.batch_size, device, turned=True)
+    return name, descriptor_ranking_fn(data, describe, cfg, queries if turned else None)

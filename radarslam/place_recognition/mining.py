@@ -23,6 +23,7 @@ class Triplet:
     query: int
     positive: int
     negatives: np.ndarray  # (k,) int64, 1 <= k <= num_negatives
+    turned: bool = False  # the query's images turned by 180 deg, its positive driven reversed
 
 
 def mine_triplets(
@@ -33,8 +34,12 @@ def mine_triplets(
     data: Any,
     cfg: TrainConfig,
     rng: np.random.Generator,
+    turned: bool = False,
 ) -> tuple[list[Triplet], int]:
-    """Mine one triplet per query from the descriptor cache -> (triplets, number skipped)."""
+    """Mine one triplet per query from the descriptor cache -> (triplets, number skipped).
+
+    ``turned``: ``q_desc`` describe the queries' turned images, whose positives are the ones
+    driven the other way round (``data.reversed_positives``)."""
     n_frames = len(data.images)
     row_of = np.full(n_frames, -1, dtype=np.int64)
     row_of[np.asarray(db_frames)] = np.arange(len(db_frames))
@@ -45,7 +50,12 @@ def mine_triplets(
         dist = _pairwise_l2(q_desc[s : s + 256], db_desc).cpu().numpy()
         for i, q in enumerate(query_frames[s : s + 256]):
             q = int(q)
-            pos_rows = row_of[np.asarray(data.positives(q), dtype=np.int64)]
+            pos = (
+                data.reversed_positives(q, cfg.turned_max_heading_error_deg)
+                if turned
+                else data.positives(q)
+            )
+            pos_rows = row_of[np.asarray(pos, dtype=np.int64)]
             neg_pool = row_of[np.asarray(data.negatives_pool(q), dtype=np.int64)]
             if (pos_rows < 0).any() or (neg_pool < 0).any():
                 raise DataError(f"{root}: positives/negatives of frame {q} are not database frames")
@@ -67,6 +77,7 @@ def mine_triplets(
                     query=q,
                     positive=int(db_frames[pos_rows[best]]),
                     negatives=np.asarray(db_frames)[violating].astype(np.int64),
+                    turned=turned,
                 )
             )
     return triplets, skipped
@@ -86,10 +97,20 @@ def _triplet_step_loss(
     frames_per_trip = [np.concatenate(([t.query, t.positive], t.negatives)) for t in triplets]
     seq_frames = np.concatenate(frames_per_trip)
     seqs = np.asarray(sequences)[seq_frames][:, -seq_len:]
-    uniq, inverse = np.unique(seqs, return_inverse=True)
+    # a turned query's frames are keyed n + frame, apart from the same frames seen unturned
+    n = len(store)
+    turned_rows = np.concatenate(
+        [np.arange(len(f)) == 0 if t.turned else np.zeros(len(f), bool)
+         for t, f in zip(triplets, frames_per_trip, strict=True)]
+    )  # fmt: skip
+    keys = seqs + n * turned_rows[:, None]
+    uniq, inverse = np.unique(keys, return_inverse=True)
     seq_index = torch.from_numpy(inverse.reshape(seqs.shape).astype(np.int64)).to(store.device)
+    images = store.get(uniq[uniq < n])
+    if uniq[-1] >= n:  # sorted: the turned keys come last
+        images = torch.cat([images, store.get(uniq[uniq >= n] - n, turned=True)])
     with _autocast(store.device, amp):
-        desc = model(store.get(uniq), seq_index)
+        desc = model(images, seq_index)
     desc = desc.float()
     anchors, positives, negatives = [], [], []
     offset = 0

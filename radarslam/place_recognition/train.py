@@ -193,7 +193,37 @@ def train(
             tr = desc[n_db : n_db + n_train] if with_train else None
             return db, tr, desc[len(desc) - len(val_frames) :]
 
+        # Turned queries: those (train / val) with positives driven the other way round.
+        turn_err = train_cfg.turned_max_heading_error_deg
+
+        def reversed_positives(q: int) -> np.ndarray:
+            return data.reversed_positives(q, turn_err)
+
+        def with_reversed(frames: np.ndarray) -> np.ndarray:
+            if not train_cfg.turned_queries:
+                return np.zeros(0, np.int64)
+            return np.flatnonzero([len(reversed_positives(int(q))) > 0 for q in frames])
+
+        turned_train_rows, turned_val_rows = with_reversed(train_frames), with_reversed(val_frames)
+        n_turned_train = len(turned_train_rows)
+
+        def turned_pass(with_train: bool) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+            """Descriptors of the turned train (if asked) and val queries (None: there are none)."""
+            parts = [*([train_frames[turned_train_rows]] if with_train else [])]
+            parts.append(val_frames[turned_val_rows])
+            frames = np.concatenate(parts)
+            if not len(frames):
+                return None, None
+            desc = _descriptors(
+                model, store, sequences, frames, train_cfg.cache_batch_size,
+                progress=show, desc="cache (turned)", amp=train_cfg.amp_bf16, turned=True,
+            )  # fmt: skip
+            tr = desc[:n_turned_train] if with_train and n_turned_train else None
+            val = desc[len(desc) - len(turned_val_rows) :] if len(turned_val_rows) else None
+            return tr, val
+
         cache: tuple[torch.Tensor, torch.Tensor | None, torch.Tensor] | None = None
+        turned_cache: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None)
         if not resume and is_main:
             # a new run: the previous run's outputs must not survive next to this one's
             for stale in (best_path, last_path, out_dir / "history.json"):
@@ -204,6 +234,7 @@ def train(
             rng = _epoch_rng(train_cfg.seed, epoch)
             if cache is None:
                 cache = cache_pass(with_train=True)
+                turned_cache = turned_pass(with_train=True)
             db_desc, tr_desc, _ = cache
             rows = np.arange(n_train)
             if train_cfg.queries_per_epoch and train_cfg.queries_per_epoch < n_train:
@@ -217,6 +248,15 @@ def train(
                 train_cfg,
                 rng,
             )
+            if turned_cache[0] is not None:
+                picked = np.isin(turned_train_rows, rows)
+                more_triplets, more_skipped = mine_triplets(
+                    turned_cache[0][torch.from_numpy(np.flatnonzero(picked)).to(device)],
+                    train_frames[turned_train_rows[picked]],
+                    db_desc, db_frames, data, train_cfg, rng, turned=True,
+                )  # fmt: skip
+                triplets += more_triplets
+                skipped += more_skipped
             # No triplet at all (every query already separates its negatives by the margin) is
             # a legitimate, converged state on easy data: the epoch then makes no step but is
             # still validated and counted for selection, patience and the LR schedule.
@@ -279,6 +319,16 @@ def train(
                 db_desc, val_desc, db_frames, val_frames, data, train_cfg.recall_ns
             )
             r1 = recalls[1]
+            turned_recalls: dict[int, float] = {}
+            if train_cfg.turned_queries:
+                turned_cache = turned_pass(with_train=more)
+                if turned_cache[1] is not None:
+                    turned_recalls = recall_at_n_from_descriptors(
+                        db_desc, turned_cache[1], db_frames, val_frames[turned_val_rows], data,
+                        train_cfg.recall_ns, positives=reversed_positives,
+                    )  # fmt: skip
+                    n_val, n_turned = len(val_frames), len(turned_val_rows)
+                    r1 = (n_val * r1 + n_turned * turned_recalls[1]) / (n_val + n_turned)
             record = {
                 "epoch": epoch,
                 "lr": lr_epoch,
@@ -289,6 +339,8 @@ def train(
                 if triplets
                 else 0.0,
                 **{f"val_recall@{n}": v for n, v in recalls.items()},
+                **{f"val_turned_recall@{n}": v for n, v in turned_recalls.items()},
+                **({"val_selection_r1": r1} if turned_recalls else {}),
                 "seconds": round(time.perf_counter() - t0, 2),
             }
             history.append(record)
@@ -302,6 +354,11 @@ def train(
                 meta = {
                     "epoch": epoch,
                     "val_recall": {str(n): v for n, v in recalls.items()},
+                    **(
+                        {"val_turned_recall": {str(n): v for n, v in turned_recalls.items()}}
+                        if turned_recalls
+                        else {}
+                    ),
                     "git_commit": commit,
                     "data_root": root,
                     "n_database": n_db,
@@ -328,7 +385,12 @@ def train(
                     tqdm.write(
                         f"epoch {epoch}: loss {record['loss'] or 0.0:.4f}, "
                         f"triplets {len(triplets)} "
-                        f"(skipped {skipped}), val R@1 {r1:.3f}"
+                        f"(skipped {skipped}), val R@1 {recalls[1]:.3f}"
+                        + (
+                            f", turned {turned_recalls[1]:.3f} (pooled {r1:.3f})"
+                            if turned_recalls
+                            else ""
+                        )
                         + (" *best*" if improved else "")
                         + f", {record['seconds']:.1f} s"
                     )

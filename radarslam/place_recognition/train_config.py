@@ -72,6 +72,14 @@ class TrainConfig(StrictModel):
     #: Start every layer from this checkpoint, a model of the same architecture: fine-tuning
     #: trained weights (the shipped ones, say) on new data. Ignored when resuming.
     init_weights_from: str | None = None
+    #: Also train every query that has positives driven the other way round: its images turned
+    #: by 180 deg (what SLAM's turned search, ``loops.reversed_search``, queries) against those
+    #: positives, mined as the others. Validation then also measures the turned queries, and the
+    #: best epoch is selected on R@1 pooled over both kinds of query.
+    turned_queries: bool = False
+    #: A positive is driven the other way round when its heading lies this close to the query's
+    #: turned by 180 deg.
+    turned_max_heading_error_deg: float = Field(45.0, gt=0, le=90)
 
     @model_validator(mode="after")
     def _check(self) -> TrainConfig:
@@ -109,4 +117,5 @@ class TrainResult:
     last_checkpoint: Path
     history: list[dict] = field(default_factory=list)
     best_epoch: int = 0
+    #: val R@1 of the best epoch (pooled with the turned queries under ``turned_queries``)
     best_recall_at_1: float = float("nan")

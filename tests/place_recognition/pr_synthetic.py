@@ -38,12 +38,15 @@ def synthetic_frames():
     return np.array(pos), np.array(t, np.int64), np.array(names)
 
 
-def corridor_data(seed: int = 0, n_db: int = 60, size: int = 32, step_m: float = 2.0):
+def corridor_data(
+    seed: int = 0, n_db: int = 60, size: int = 32, step_m: float = 2.0, reversed_drives=False
+):
     """Four drives along a 118 m corridor of random landmarks, seen as 32x32 occupancy at 1 m/px.
 
     The database drive samples every 2 m on the centre line; train / val / test drives are shifted
     along (0.5-1.5 m) and across (0.4-0.8 m) it, lose 25% of the landmarks per frame and gain 12
     clutter cells, so places must be recognised from partial, noisy, shifted views.
+    ``reversed_drives``: two more drives, train and val queries, driven the other way round.
     """
     rng = np.random.default_rng(seed)
     half = size // 2
@@ -53,11 +56,14 @@ def corridor_data(seed: int = 0, n_db: int = 60, size: int = 32, step_m: float =
     )
     drives = [("db", 0.0, 0.0, n_db), ("train", 1.0, 0.4, n_db - 1)]
     drives += [("val", 0.5, -0.4, n_db - 1), ("test", 1.5, 0.8, n_db - 1)]
+    if reversed_drives:
+        drives += [("train_reversed", 1.0, -0.6, n_db - 1), ("val_reversed", 0.5, 0.6, n_db - 1)]
     images, positions, names = [], [], []
     for name, x0, y0, count in drives:
+        turn = -1.0 if name.endswith("_reversed") else 1.0
         for k in range(count):
-            x = x0 + k * step_m
-            rel = landmarks - (x, y0)
+            x = x0 + k * step_m if turn > 0 else length - x0 - k * step_m
+            rel = turn * (landmarks - (x, y0))
             rel = rel[rng.random(len(rel)) < 0.75]
             r = np.round(rel[:, 0]).astype(int) + half
             c = np.round(rel[:, 1]).astype(int) + half
@@ -68,4 +74,13 @@ def corridor_data(seed: int = 0, n_db: int = 60, size: int = 32, step_m: float =
             images.append(img)
             positions.append((x, y0))
             names.append(name)
-    return PreparedData.from_drives("synthetic-corridor", images, positions, names)
+    data = PreparedData.from_drives("synthetic-corridor", images, positions, names)
+    if reversed_drives:
+        names = np.asarray(names)
+        reverse = np.char.endswith(names, "_reversed")
+        data.yaw_rad[reverse] = np.pi
+        for split in ("train", "val"):
+            data.splits[split] = np.concatenate(
+                [data.splits[split], np.flatnonzero(names == f"{split}_reversed")[2:]]
+            )
+    return data

@@ -78,6 +78,11 @@ def test_positives_negatives_and_radii():
     assert data.negatives_pool(q).tolist() == [26, 29, 32]  # > 18 m: only the far scene
     assert data.is_positive(np.array([q]), np.array([[2, 8]])).tolist() == [[True, False]]
     assert data.frames_float([q], seq_len=2).shape == (1, 2, 1, 4, 4)
+    # driven the other way round: heading within the given error of the query's turned by pi
+    data.yaw_rad[2], data.yaw_rad[5], data.yaw_rad[q] = 3.0, -2.2, -0.1
+    assert data.reversed_positives(q, 45.0).tolist() == [2]  # 3.0: 2.4 deg off pi - 0.1
+    assert data.reversed_positives(q, 60.0).tolist() == [2, 5]  # -2.2: 59.7 deg off
+    assert data.reversed_positives(q, 2.0).tolist() == []
 
 
 def test_split_errors():

@@ -15,6 +15,7 @@ from radarslam.place_recognition.evaluate import (
     descriptor_ranking_fn,
     evaluate_method,
     evaluate_ranking,
+    evaluate_turned,
     tune_rcshr,
     write_results,
 )
@@ -58,6 +59,23 @@ def test_oracle_and_random_descriptors():
     q = data.splits["test"]
     expected = np.mean(np.hypot(data.positions_xy[q, 0] - 1.0, 8.5) <= 9.0)
     assert r.recall[1] == pytest.approx(expected)
+
+
+def test_turned_search_counts_only_positives_driven_the_other_way():
+    data = synthetic_data()
+    cfg = EvalConfig()
+    oracle = descriptor_ranking_fn(data, lambda f: data.positions_xy[f], cfg)
+    # every DB frame driven the same way as the queries: nothing for the turned search
+    assert evaluate_turned(data, "oracle", oracle, cfg, "test") is None
+    db = data.splits["database"]
+    data.yaw_rad[db[data.positions_xy[db, 0] >= 2.0]] = np.pi  # the far DB frames reversed
+    res = evaluate_turned(data, "oracle", oracle, cfg, "test")
+    queries = [q for q in data.splits["test"] if len(data.reversed_positives(q, 45.0))]
+    assert res.name == "oracle turned" and res.num_queries == len(queries) == 6
+    # the oracle's nearest DB frame is driven the other way for the queries from x = 2 m on
+    ranking = oracle(np.array(queries), 10)
+    want = np.mean(data.yaw_rad[ranking.db_frames[:, 0]] != 0)
+    assert 0 < want < 1 and res.recall[1] == pytest.approx(want) and res.recall[10] == 1.0
 
 
 def test_rcshr_ranking_and_tuning():
