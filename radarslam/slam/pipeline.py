@@ -140,7 +140,7 @@ class SlamPipeline:
         self.linker = SessionLinker(
             cfg, self.state, self.verification, self.insertion, self._catch_up
         )
-        self._proximity = ProximityProposer(cfg, self.state)
+        self._proximity = ProximityProposer(cfg, self.state, self.verification.placed)
         #: Asked in this order for every key frame; each one after the first only proposes
         #: when nothing closed the key frame yet.
         self.proposers: list[CandidateProposer] = [

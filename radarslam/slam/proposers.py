@@ -189,8 +189,10 @@ class ProximityProposer:
     (ICP only). Once a session is linked, this closes a loop at nearly every revisiting key
     frame, which is what pulls the whole session onto the map."""
 
-    def __init__(self, config: SlamConfig, state: MapState) -> None:
-        self.config, self.state = config, state
+    def __init__(
+        self, config: SlamConfig, state: MapState, placed: Callable[[KeyFrame], np.ndarray]
+    ) -> None:
+        self.config, self.state, self.placed = config, state, placed
 
     def candidates(
         self, session: Session, kf: KeyFrame, among: set[str] | None = None
@@ -202,9 +204,10 @@ class ProximityProposer:
         if cfg.proximity_radius_m is None:
             return []
         group = self.state.groups[session.group]
-        # Candidates and query are placed the same way (group link @ odometry) so that a common
-        # error of the link cancels; the verification's guess then uses the graph's estimate.
-        query_xy = (group.from_session[session.name] @ kf.odometry_pose)[:2, 3]
+        # Candidates and query are placed the same way (link @ odometry; the query possibly
+        # through its latest loop, ``placed``) so that a common error of the placements cancels;
+        # the verification's guess then uses the graph's estimate.
+        query_xy = self.placed(kf)[:2, 3]
         found = self.state.near_key_frames(group, query_xy, among, recent_of=kf)
         return [
             Proposal(k, float("nan"), "proximity", verifier="proximity")

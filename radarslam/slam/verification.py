@@ -113,17 +113,35 @@ class Verification:
             # Outside the map no graph corrects the placements, and both odometry chains drift
             # from where the sessions were linked: chain from the query session's latest loop
             # (with the candidate's session if there is one) over a short span of odometry.
-            lq, lc = state.key_frame(last.query), state.key_frame(last.candidate)
-            partner = state.groups[qs.group].from_session[last.candidate.session]
-            query_in_group = (
-                partner
-                @ lc.odometry_pose
-                @ last.candidate_from_query
-                @ invert(lq.odometry_pose)
-                @ query.odometry_pose
-            )
-            return invert(state.pose_in_group(cand)) @ query_in_group
+            return invert(state.pose_in_group(cand)) @ self._chained(query, last)
         return invert(state.pose_in_group(cand)) @ state.pose_in_group(query)
+
+    def _chained(self, query: KeyFrame, loop: LoopCandidate) -> np.ndarray:
+        """group_from_query through ``loop`` (of the query's session): the loop's candidate
+        placed by link @ odometry, the loop's measurement, then the query session's odometry."""
+        state = self.state
+        lq, lc = state.key_frame(loop.query), state.key_frame(loop.candidate)
+        qs = state.sessions[query.key.session]
+        partner = state.groups[qs.group].from_session[loop.candidate.session]
+        return (
+            partner
+            @ lc.odometry_pose
+            @ loop.candidate_from_query
+            @ invert(lq.odometry_pose)
+            @ query.odometry_pose
+        )
+
+    def placed(self, query: KeyFrame) -> np.ndarray:
+        """group_from_query where the proximity search looks (``loops.proximity_origin``): the
+        key frames of a group are placed by link @ odometry, and the query is too, either
+        through its session's link or chained from its session's latest loop with another
+        session of the group."""
+        state = self.state
+        qs = state.sessions[query.key.session]
+        last = self._last_loop.get((qs.name, None))
+        if self.config.loops.proximity_origin == "latest_loop" and last is not None:
+            return self._chained(query, last)
+        return state.groups[qs.group].from_session[qs.name] @ query.odometry_pose
 
     def candidate_past(self, guess: np.ndarray | None) -> bool:
         """Whether the candidate's local map takes its past key frames only

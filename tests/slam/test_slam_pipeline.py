@@ -724,20 +724,23 @@ def test_a_recognizer_that_already_holds_places_is_refused(reader, recognizer):
         SlamPipeline(reader, SlamConfig(), recognizer=rec, progress=False)
 
 
-def test_outside_the_map_guesses_chain_from_the_latest_loop(reader):
-    # Sessions B and C are linked to each other (not to the map) with a placement 3 m off where
-    # B's odometry has drifted by now; B's latest loop, against C, was measured exactly. The
-    # guess for B's newest key frame against C's must chain from that loop, not the placement.
+def _two_linked_sessions(reader, offset_m, **loops):
+    """Sessions B and C linked to each other (not to the map) with a placement ``offset_m`` off
+    where B's odometry has drifted by now; B's latest loop, against C, was measured exactly.
+    Returns (pipeline, C's odometry frame from B's (the truth), b1, c1)."""
     from radarslam.io.loops import NodeKey
     from radarslam.slam.state import KeyFrame
 
     cfg = SlamConfig()
+    cfg.loops = cfg.loops.model_copy(update=loops)
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
     for name in ("A", "B", "C"):
         pipeline.state.start_session(name)
     c_from_b_true = se2_to_matrix(20.0, 5.0, 0.3)  # C's odometry frame from B's (the truth)
     group = pipeline.groups[pipeline.sessions["C"].group]
-    group.from_session["B"] = group.from_session["C"] @ c_from_b_true @ se2_to_matrix(0, 3, 0)
+    group.from_session["B"] = (
+        group.from_session["C"] @ c_from_b_true @ se2_to_matrix(0, offset_m, 0)
+    )
     del pipeline.groups[pipeline.sessions["B"].group]
     pipeline.sessions["B"].group = group.index
 
@@ -751,15 +754,45 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader):
     b0 = key_frame("B", 0, se2_to_matrix(0.0, 0.0, 0.0))
     b1 = key_frame("B", 1, se2_to_matrix(10.0, 0.0, 0.1))
     c0 = key_frame("C", 0, se2_to_matrix(-20.0, -4.0, -0.3))
-    c1 = key_frame("C", 1, se2_to_matrix(-12.0, -3.0, -0.2))
+    # C's second key frame 1.4 m from where B's second one truly is
+    c1 = key_frame("C", 1, c_from_b_true @ b1.odometry_pose @ se2_to_matrix(1.0, -1.0, 0.05))
     measured = invert(c0.odometry_pose) @ c_from_b_true @ b0.odometry_pose
     pipeline.verification.note_loop(LoopCandidate(b0.key, c0.key, 0, 0, 0.0, True, "ok", measured))
+    return pipeline, c_from_b_true, b1, c1
+
+
+def test_outside_the_map_guesses_chain_from_the_latest_loop(reader):
+    # The guess for B's newest key frame against C's must chain from B's latest loop, not the
+    # placement.
+    pipeline, c_from_b_true, b1, c1 = _two_linked_sessions(reader, 3.0)
     truth = invert(c1.odometry_pose) @ c_from_b_true @ b1.odometry_pose
     guess = pipeline.verification.guess(b1, c1)
     np.testing.assert_allclose(guess, truth, atol=1e-9)
     # the link's placement alone would be 3 m off
     placed = invert(pipeline.state.pose_in_group(c1)) @ pipeline.state.pose_in_group(b1)
     assert np.linalg.norm(placed[:2, 3] - truth[:2, 3]) == pytest.approx(3.0)
+
+
+@pytest.mark.parametrize("origin, found", [("latest_loop", True), ("link", False)])
+def test_proximity_search_looks_where_the_latest_loop_places_the_key_frame(reader, origin, found):
+    # The link's placement is 12 m off by now, beyond the 10 m search radius; chained from B's
+    # latest loop, B's newest key frame lies on C's where it truly is.
+    pipeline, c_from_b_true, b1, c1 = _two_linked_sessions(
+        reader, 12.0, proximity_origin=origin, exclude_recent_s=0.0
+    )
+    group = pipeline.groups[pipeline.sessions["C"].group]
+    c1_in_group = pipeline.state.pose_in_group(c1)
+    link_m = np.hypot(*(pipeline.state.pose_in_group(b1) - c1_in_group)[:2, 3])
+    assert 11.0 < link_m < 13.0
+    b1_in_group = pipeline.verification.placed(b1)
+    if origin == "latest_loop":
+        np.testing.assert_allclose(
+            b1_in_group, group.from_session["C"] @ c_from_b_true @ b1.odometry_pose, atol=1e-9
+        )
+    else:
+        np.testing.assert_allclose(b1_in_group, group.from_session["B"] @ b1.odometry_pose)
+    proposals = pipeline._proximity.candidates(pipeline.sessions["B"], b1, among={"C"})
+    assert [p.candidate.key for p in proposals] == ([c1.key] if found else [])
 
 
 def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit(reader, scenes):
