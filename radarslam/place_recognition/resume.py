@@ -59,8 +59,10 @@ def _load_resume_state(path: Path, model_cfg: ModelConfig, train_cfg: TrainConfi
     if have_model != model_cfg.model_dump(mode="json"):
         diff = [k for k in have_model if have_model.get(k) != model_cfg.model_dump().get(k)]
         raise CheckpointError(f"{path}: model config differs from the run's ({', '.join(diff)})")
-    have_train = dict(payload.get("train_config") or {})
     want_train = train_cfg.model_dump(mode="json")
+    # a key the checkpoint lacks did not exist when it was written: that run had its default
+    defaults = TrainConfig.model_construct().model_dump(mode="json")
+    have_train = {**defaults, **(payload.get("train_config") or {})}
     diff = [
         k
         for k in sorted(set(have_train) | set(want_train))

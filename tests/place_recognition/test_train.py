@@ -13,7 +13,7 @@ from pr_synthetic import TINY, corridor_data  # shared with the model and ablati
 
 from radarslam.config import build_config
 from radarslam.errors import CheckpointError, ConfigError, DataError
-from radarslam.place_recognition.checkpoint import load_model, read_checkpoint
+from radarslam.place_recognition.checkpoint import load_model, read_checkpoint, save_checkpoint
 from radarslam.place_recognition.descriptors import turn_images
 from radarslam.place_recognition.models import build_model
 from radarslam.place_recognition.train import (
@@ -200,6 +200,25 @@ def test_resume_continues_exactly(data, full_run, tmp_path):
     # resuming a finished run is a no-op that still reports the best checkpoint
     again = train(TrainConfig(**FAST), TINY, data, tmp_path, resume=True, progress=False)
     assert again.history == resumed.history and again.best_epoch == result.best_epoch
+
+
+def test_resume_reads_a_missing_train_key_as_its_default(data, full_run, tmp_path):
+    # a checkpoint written before a train key existed ran with that key's default
+    result, _ = full_run
+    train(TrainConfig(**{**FAST, "epochs": 2}), TINY, data, tmp_path, progress=False)
+    last = tmp_path / "last.pt"
+    payload = read_checkpoint(last)
+    model = load_model(last, expect=TINY)[0]
+    old_cfg = {k: v for k, v in payload["train_config"].items() if not k.startswith("turned_")}
+    save_checkpoint(last, model, TINY, old_cfg, payload["meta"],
+                    training_state=payload["training_state"])  # fmt: skip
+    resumed = train(TrainConfig(**FAST), TINY, data, tmp_path, resume=True, progress=False)
+    assert [r["val_recall@1"] for r in resumed.history] == [
+        r["val_recall@1"] for r in result.history
+    ]
+    with pytest.raises(CheckpointError, match=r"differs .* in turned_queries"):
+        train(TrainConfig(**{**FAST, "turned_queries": True}), TINY, data, tmp_path, resume=True,
+              progress=False)  # fmt: skip
 
 
 def test_resume_refuses_mismatches(data, full_run, tmp_path):
