@@ -127,18 +127,17 @@ def eval_cmd(
     check_output_dir(out)
     cfg = load_eval_config(config, overrides)
     data = load_prepared(prepared)
+    turned_fn = None
     if checkpoint is not None:
-        name, fn = checkpoint_ranking_fn(data, checkpoint, cfg)
+        name, fn, turned_fn = checkpoint_ranking_fn(data, checkpoint, cfg)
     else:
         assert baseline is not None  # exactly one of the two was checked above
         name, fn = baseline_ranking_fn(data, baseline, cfg)
     results = evaluate_method(
         data, name, fn, cfg, split, rerank_cfg=cfg.rerank if rerank else None, tune_on_val=tune
     )
-    if checkpoint is not None:  # SLAM's turned search, for a street driven the other way round
-        turned = evaluate_turned(
-            data, name, checkpoint_ranking_fn(data, checkpoint, cfg, turned=True)[1], cfg, split
-        )
+    if turned_fn is not None:  # SLAM's turned search, for a street driven the other way round
+        turned = evaluate_turned(data, name, turned_fn, cfg, split)
         results += [turned] if turned is not None else []
     paths = write_results(results, out, stem=f"{name}_{split}".replace("+", "_"))
     _echo_table([r.row() for r in results])

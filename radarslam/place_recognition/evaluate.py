@@ -278,10 +278,12 @@ def descriptor_ranking_fn(
     describe: Callable[[np.ndarray], np.ndarray],
     cfg: EvalConfig,
     describe_queries: Callable[[np.ndarray], np.ndarray] | None = None,
+    db_cache: dict[str, np.ndarray] | None = None,
 ) -> Callable[[np.ndarray, int], Ranking]:
     """A ranking function from ``describe(frames) -> (M, D)`` (queries through
-    ``describe_queries`` if given); the DB is described once."""
-    cache: dict[str, np.ndarray] = {}
+    ``describe_queries`` if given); the DB is described once (into ``db_cache`` if given, which
+    ranking functions of the same ``describe`` may share)."""
+    cache: dict[str, np.ndarray] = {} if db_cache is None else db_cache
 
     def fn(query_frames: np.ndarray, k: int) -> Ranking:
         if "db" not in cache:
@@ -372,18 +374,20 @@ def model_describe_fn(
 
 
 def checkpoint_ranking_fn(
-    data: PreparedData,
-    checkpoint: str | Path,
-    cfg: EvalConfig,
-    device: str = "cpu",
-    turned: bool = False,
-) -> tuple[str, Callable[[np.ndarray, int], Ranking]]:
-    """(name, ranking function) of a checkpoint; ``turned``: queries described from their
-    images turned by 180 deg (:func:`evaluate_turned`)."""
+    data: PreparedData, checkpoint: str | Path, cfg: EvalConfig, device: str = "cpu"
+) -> tuple[str, Callable[[np.ndarray, int], Ranking], Callable[[np.ndarray, int], Ranking]]:
+    """(name, ranking function, turned ranking function) of a checkpoint: the second describes
+    the queries from their images turned by 180 deg (:func:`evaluate_turned`); both share the
+    model and the database's descriptors."""
     from radarslam.place_recognition.checkpoint import load_model
 
     model, model_cfg, _ = load_model(checkpoint, device=device)
     name = str(getattr(model_cfg, "preset", "") or Path(checkpoint).stem)
     describe = model_describe_fn(model, data, cfg.batch_size, device)
-    queries = model_describe_fn(model, data, cfg.batch_size, device, turned=True)
-    return name, descriptor_ranking_fn(data, describe, cfg, queries if turned else None)
+    turned = model_describe_fn(model, data, cfg.batch_size, device, turned=True)
+    db: dict[str, np.ndarray] = {}
+    return (
+        name,
+        descriptor_ranking_fn(data, describe, cfg, db_cache=db),
+        descriptor_ranking_fn(data, describe, cfg, turned, db_cache=db),
+    )

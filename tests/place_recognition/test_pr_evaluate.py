@@ -76,6 +76,19 @@ def test_turned_search_counts_only_positives_driven_the_other_way():
     ranking = oracle(np.array(queries), 10)
     want = np.mean(data.yaw_rad[ranking.db_frames[:, 0]] != 0)
     assert 0 < want < 1 and res.recall[1] == pytest.approx(want) and res.recall[10] == 1.0
+    # a plain and a turned ranking function sharing one database cache describe the DB once
+    calls = []
+
+    def describe(frames):
+        calls.append(len(frames))
+        return data.positions_xy[frames]
+
+    shared: dict = {}
+    plain = descriptor_ranking_fn(data, describe, cfg, db_cache=shared)
+    turned = descriptor_ranking_fn(data, describe, cfg, lambda f: -data.positions_xy[f], shared)
+    plain(np.array(queries), 3)
+    turned(np.array(queries), 3)
+    assert calls == [len(db), len(queries)]
 
 
 def test_rcshr_ranking_and_tuning():
