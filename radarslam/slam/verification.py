@@ -190,17 +190,22 @@ class Verification:
         record = replace(record, source=source)
         if guess is not None and cand.key.session != query.key.session:
             # The guess came from the map (or the group): a pose far from it is a look-alike.
-            record = self.near_prediction(record, guess, "the map's prediction")
+            limit_m = self.config.loops.map_consistency_m
+            if verifier == "proximity" and self.config.loops.proximity_consistency_m is not None:
+                limit_m = self.config.loops.proximity_consistency_m
+            record = self.near_prediction(record, guess, "the map's prediction", limit_m)
         return record, ver
 
-    def near_prediction(self, record: LoopCandidate, guess: np.ndarray, what: str):
-        """``record`` rejected when accepted but farther than ``loops.map_consistency_*`` from
-        ``guess`` (``what`` names the prediction in the reason)."""
+    def near_prediction(
+        self, record: LoopCandidate, guess: np.ndarray, what: str, limit_m: float | None = None
+    ):
+        """``record`` rejected when accepted but farther than ``limit_m`` (None:
+        ``loops.map_consistency_m``) or ``loops.map_consistency_deg`` from ``guess`` (``what``
+        names the prediction in the reason)."""
         cfg = self.config.loops
+        limit_m = cfg.map_consistency_m if limit_m is None else limit_m
         dist_m, dyaw_deg = se2_distance(guess, record.candidate_from_query)
-        if record.accepted and (
-            dist_m > cfg.map_consistency_m or dyaw_deg > cfg.map_consistency_deg
-        ):
+        if record.accepted and (dist_m > limit_m or dyaw_deg > cfg.map_consistency_deg):
             reason = f"{dist_m:.1f} m / {dyaw_deg:.0f} deg from {what}"
             return replace(record, accepted=False, reason=reason)
         return record

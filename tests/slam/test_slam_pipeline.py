@@ -795,6 +795,43 @@ def test_proximity_search_looks_where_the_latest_loop_places_the_key_frame(reade
     assert [p.candidate.key for p in proposals] == ([c1.key] if found else [])
 
 
+class _SlidVerifier:
+    """A verifier whose registration lands ``slide_m`` along the candidate's x axis (a straight
+    street) from where it started."""
+
+    def __init__(self, slide_m):
+        self.slide_m = slide_m
+
+    def verify_candidate(self, query, candidate, tq, tc, distance, qmap, cmap, start, cache_keys):
+        pose = start @ se2_to_matrix(self.slide_m, 0.0, 0.0)
+        ver = LoopVerification(True, "ok", pose, 0.6, 0.3, 0.6, np.eye(3))
+        return LoopCandidate.from_verification(query, candidate, tq, tc, distance, ver), ver
+
+
+@pytest.mark.parametrize(
+    "verifier, slide_m, limit, accepted",
+    [
+        ("proximity", 1.2, 1.5, True),
+        ("proximity", 2.2, 1.5, False),  # slid along the street
+        ("proximity", 2.2, None, True),  # None: the map's 3 m
+        ("guided", 2.2, 1.5, True),  # other candidates keep the map's 3 m
+        ("guided", 3.2, 1.5, False),
+    ],
+)
+def test_a_proximity_loop_far_from_its_prediction_is_rejected(
+    reader, verifier, slide_m, limit, accepted
+):
+    from dataclasses import replace as _replace
+
+    pipeline, _, b1, c1 = _two_linked_sessions(reader, 0.0, proximity_consistency_m=limit)
+    ver = pipeline.verification
+    ver.verifiers = _replace(ver.verifiers, **{verifier: _SlidVerifier(slide_m)})
+    record, _ = ver.check(b1, c1, 0.0, "proximity", verifier=verifier)
+    assert record.accepted is accepted
+    if not accepted:
+        assert record.reason == f"{slide_m:.1f} m / 0 deg from the map's prediction"
+
+
 def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit(reader, scenes):
     # Two drives of a street in opposite lanes: where both local maps cover the same stretch,
     # each one's path-following clutter attracts the other's path (docs/results.md, tenth
