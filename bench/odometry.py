@@ -53,8 +53,10 @@ REALTIME_TARGET = 20.0
 
 def synthetic_dataroots(work: Path) -> dict[str, Path]:
     """The synthetic city subset (6 scenes of 20 s) and one long drive of 8 chained scenes,
-    generated once into ``work`` (the simulator is deterministic)."""
+    generated once into ``work`` per resolved simulator config (the simulator is
+    deterministic)."""
     from radarslam.sim import simulate
+    from radarslam.sim.config import load_sim_config
 
     sets = {
         "city": ["schedule.n_logs=2", "schedule.scenes_per_log=3", "jobs=1"],
@@ -69,7 +71,9 @@ def synthetic_dataroots(work: Path) -> dict[str, Path]:
     }
     out = {}
     for name, overrides in sets.items():
-        digest = hashlib.md5("|".join(overrides).encode()).hexdigest()[:8]
+        # The resolved config, defaults included: a changed simulator default is a new world.
+        resolved = load_sim_config("city", overrides).model_dump_json()
+        digest = hashlib.md5(resolved.encode()).hexdigest()[:8]
         root = work / f"{name}_{digest}"
         if not (root / "v1.0-trainval" / "scene.json").is_file():
             print(f"generating {name} ({' '.join(overrides)}) -> {root}", flush=True)

@@ -121,6 +121,10 @@ class DopplerConfig(StrictModel):
     lateral_velocity_sigma_mps: float | None = Field(None, gt=0, le=1000)
     #: Weak prior keeping an unobservable yaw rate at 0 (rad/s).
     yaw_rate_prior_sigma_radps: float = Field(10.0, gt=0, le=1000)
+    #: The radars' Doppler scale: they measure (1 + this) x the true radial velocity, and the
+    #: joint fit divides its twist by (1 + this). The odometry's default, -0.003, is what real
+    #: ARS408 units read (docs/results.md); 0: take the Doppler as exact.
+    speed_scale_error: float = Field(0.0, ge=-0.5, le=0.5)
     seed: int = 0
 
 
@@ -376,6 +380,11 @@ class DopplerEstimator:
         mount = self._mounting_jacobian(
             a, b, x, inl, radar_of, [sweeps[k].channel for k, _ in owner], levers=np.array(lever)
         )
+        if c.speed_scale_error:
+            # Every measured v_r is (1 + e) times the model's, and the model is linear in the
+            # twist: the fit (and all that derives from it) is (1 + e) times the true twist.
+            gain = 1.0 / (1.0 + c.speed_scale_error)
+            x, cov, mount = x * gain, cov * gain**2, mount * gain
         return EgoMotionFit(
             velocity_mps=x[:2].copy(),
             yaw_rate_radps=float(x[2]),

@@ -46,14 +46,17 @@ def make_points(
     sigma_azimuth_rad: float = np.deg2rad(0.5),
     sigma_range_m: float = 0.2,
     tangential_mps: float = 2.0,
+    doppler_scale_error: float = 0.0,
 ) -> np.ndarray:
-    """Radar records of targets at ``xy_true`` (sensor frame) moving with the given velocities."""
+    """Radar records of targets at ``xy_true`` (sensor frame) moving with the given velocities;
+    the radar reads (1 + ``doppler_scale_error``) x the true radial velocity."""
     n = len(xy_true)
     rng_true = np.linalg.norm(xy_true, axis=1)
     az_true = np.arctan2(xy_true[:, 1], xy_true[:, 0])
     u_true = xy_true / rng_true[:, None]
     v_rel = target_velocity_sensor - v_sensor[None, :]
-    vr = np.einsum("ij,ij->i", u_true, v_rel) + rng.normal(0, sigma_vr_mps, n)
+    vr = (1.0 + doppler_scale_error) * np.einsum("ij,ij->i", u_true, v_rel)
+    vr = vr + rng.normal(0, sigma_vr_mps, n)
     az = az_true + rng.normal(0, sigma_azimuth_rad, n)
     rr = rng_true + rng.normal(0, sigma_range_m, n)
     u = np.column_stack([np.cos(az), np.sin(az)])
@@ -208,7 +211,12 @@ def drive(
     key_frame_every: int = 6,
     **noise,
 ) -> list[RadarFrame]:
-    """Frames along a unicycle path; radars fire staggered within the frame (up to ~60 ms)."""
+    """Frames along a unicycle path; radars fire staggered within the frame (up to ~60 ms). The
+    radars read Doppler as the odometry's default calibration expects real ones to
+    (``doppler.speed_scale_error``) unless ``noise`` says otherwise."""
+    from radarslam.odometry.config import OdometryConfig
+
+    noise.setdefault("doppler_scale_error", OdometryConfig().doppler.speed_scale_error)
     frames = []
     x = y = yaw = 0.0
     t0 = 1_600_000_000_000_000

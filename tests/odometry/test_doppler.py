@@ -239,3 +239,34 @@ def test_mounting_jacobian_matches_a_refit_with_a_turned_radar():
         numeric = (refit.twist - fit.twist) / d
         predicted = fit.mounting_jacobian[:, RADAR_CHANNELS.index(ch)]
         assert np.allclose(predicted, numeric, atol=0.02 + 0.05 * np.abs(numeric).max()), ch
+
+
+def test_a_radar_doppler_scale_error_is_undone_by_the_configured_one():
+    # Radars that read every radial velocity 5 % fast: the fit scales the twist (and its
+    # covariance) by 1.05 unless speed_scale_error says so.
+    rng = np.random.default_rng(12)
+    v, w = np.array([9.0, 0.2]), 0.25
+    quiet = {"sigma_vr_mps": 0.0, "sigma_azimuth_rad": 0.0, "sigma_range_m": 0.0}
+    frame = make_frame(rng, v, w, moving_fraction=0.0, tangential_mps=0.0, **quiet)
+    fast = dataclasses.replace(
+        frame,
+        sweeps={
+            ch: sw.with_points(_scaled_velocity(sw.points, 1.05)) for ch, sw in frame.sweeps.items()
+        },
+    )
+    raw = DopplerEstimator().fit_frame(fast)
+    np.testing.assert_allclose(raw.twist, 1.05 * np.array([*v, w]), atol=1e-6)  # float32 fields
+    fixed = DopplerEstimator(DopplerConfig(speed_scale_error=0.05)).fit_frame(fast)
+    np.testing.assert_allclose(fixed.twist, [*v, w], atol=1e-6)
+    np.testing.assert_allclose(fixed.covariance, raw.covariance / 1.05**2, rtol=1e-9)
+    np.testing.assert_allclose(fixed.mounting_jacobian, raw.mounting_jacobian / 1.05, rtol=1e-9)
+    assert fixed.static_masks.keys() == raw.static_masks.keys()
+    for ch, mask in raw.static_masks.items():
+        np.testing.assert_array_equal(fixed.static_masks[ch], mask)
+
+
+def _scaled_velocity(points: np.ndarray, scale: float) -> np.ndarray:
+    out = points.copy()
+    for name in ("vx", "vy"):
+        out[name] = (points[name].astype(np.float64) * scale).astype(points[name].dtype)
+    return out
