@@ -21,6 +21,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
             "no_such_key",
         ),
         ("odometry.py", ["--dataroot", "{tmp}/none"], "no such folder"),
+        ("odometry.py", ["--doppler-seeds", "0"], "--doppler-seeds"),
         ("realism.py", ["--set", "world.x=1", "--work", "{tmp}/work"], "world"),
     ],
 )
@@ -33,3 +34,30 @@ def test_bad_argument_is_one_line_and_status_2(tmp_path, script, args, names):
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and names in lines[0], out.stderr
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_a_bench_city_from_another_simulator_config_is_named(tmp_path):
+    # The SLAM bench reuses its city: one generated before a simulator default changed is
+    # reported with the keys that differ, not measured as if it were today's world.
+    import importlib.util
+
+    import yaml
+
+    from radarslam.config import dump_config
+    from radarslam.sim.config import load_sim_config
+
+    spec = importlib.util.spec_from_file_location("bench_slam", BENCH / "slam.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    overrides = ["schedule.n_logs=4", "schedule.n_routes=1"]
+    (tmp_path / "synthetic").mkdir()
+    stored = yaml.safe_load(dump_config(load_sim_config("city", overrides)))
+    stored["jobs"] = 7  # not part of the world
+    (tmp_path / "synthetic" / "config.yaml").write_text(yaml.safe_dump(stored))
+    assert bench.stale_keys(tmp_path, overrides) == []
+    stored["radar"]["noise"]["doppler_scale_error"] = 0.0
+    (tmp_path / "synthetic" / "config.yaml").write_text(yaml.safe_dump(stored))
+    now = load_sim_config("city", overrides).radar.noise.doppler_scale_error
+    assert bench.stale_keys(tmp_path, overrides) == [
+        f"radar.noise.doppler_scale_error: 0.0 there, {now!r} now"
+    ]
