@@ -104,9 +104,15 @@ class DopplerCalibration:
     yaw_sigmas: tuple[float, ...]
     speed_scale_error: float  # true speed = Doppler speed x (1 + this)
     speed_scale_sigma: float
+    #: The radars' Doppler scale the fit undid (``doppler.speed_scale_error``, configured): they
+    #: read (1 + this) x the true radial velocity; ``speed_scale_error`` is what is left.
+    radar_speed_scale_error: float = 0.0
 
     def as_dict(self) -> dict:
-        out: dict = {"yaw_bias_model": self.yaw_bias_model}
+        out: dict = {
+            "yaw_bias_model": self.yaw_bias_model,
+            "radar_speed_scale_error": self.radar_speed_scale_error,
+        }
         deg = [math.degrees(v) for v in self.yaw_states]
         deg_sig = [math.degrees(v) for v in self.yaw_sigmas]
         if self.yaw_bias_model == "mounting":
@@ -352,6 +358,7 @@ class RadarOdometry:
             tuple(float(v) for v in sig[:-1]),
             float(self._calib[-1]),
             float(sig[-1]),
+            self.config.doppler.speed_scale_error,
         )
 
     def _total_offset(self) -> np.ndarray:

@@ -491,6 +491,7 @@ def test_mounting_yaw_error_is_estimated_and_can_be_given_back(world):
     assert 0.65 < got["RADAR_FRONT_LEFT"] < 1.1, got
     assert all(abs(v) < 0.25 for ch, v in got.items() if ch != "RADAR_FRONT_LEFT"), got
     assert cal["mounting_yaw_sigma_deg"]["RADAR_FRONT_LEFT"] < 0.25
+    assert cal["radar_speed_scale_error"] == OdometryConfig().doppler.speed_scale_error
 
     none = OdometryConfig.model_validate({"fusion": {"calibration": {"yaw_bias_model": "none"}}})
     plain = ate(poses(run("ours", wrong, none)), ref).rmse_m
