@@ -393,6 +393,16 @@ class NuScenesRadar:
             for g in self._group_rows(self.scene(scene), ref_channel, sync_tolerance_us)
         ]
 
+    def frame_count(
+        self,
+        scene: str | SceneInfo,
+        ref_channel: str = "RADAR_FRONT",
+        sync_tolerance_us: int | None = None,
+    ) -> int:
+        """How many frames :meth:`iter_frames` yields for the scene (no file is read)."""
+        _check_sync_tolerance(sync_tolerance_us)
+        return len(self._group_rows(self.scene(scene), ref_channel, sync_tolerance_us))
+
     def _group_rows(
         self, info: SceneInfo, ref_channel: str, sync_tolerance_us: int | None
     ) -> list[list[tuple[int, int]]]:

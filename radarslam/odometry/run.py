@@ -181,7 +181,7 @@ def run_odometry(
     kf: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     segment = -1
     last_t: int | None = None
-    bar = _progress(progress, infos, reader)
+    bar = _progress(progress, infos, reader, max_frames_per_scene)
     try:
         for info in infos:
             health = DopplerHealth(config.doppler.min_points)
@@ -287,13 +287,13 @@ def _self_calibrated(reader, infos, config, progress, max_frames_per_scene):
 _ROW_KEYS = ("t", "pose", "gt", "cov", "scene", "seg", "kf", "token", "status", "npts", "ms")
 
 
-def _progress(enabled: bool, infos: Sequence[SceneInfo], reader):
+def _progress(enabled: bool, infos: Sequence[SceneInfo], reader, max_frames: int | None):
     if not enabled:
         return None
     from tqdm import tqdm
 
-    # ~13 Hz radars: the frame count is estimated from the key frames (2 Hz) for the bar only.
-    total = sum(max(1, int(i.nbr_samples)) for i in infos) * 13 // 2
+    counts = (reader.frame_count(i) for i in infos)
+    total = sum(n if max_frames is None else min(n, max_frames) for n in counts)
     return tqdm(total=total or None, unit="frame", desc="odometry", leave=False)
 
 

@@ -489,8 +489,7 @@ class SlamPipeline:
             return None
         from tqdm import tqdm
 
-        ref = self.config.key_frames.ref_channel
-        total = sum(len(self.reader.sweep_tokens(i, ref)) for i in infos)
+        total = sum(self.reader.frame_count(i) for i in infos)  # as the feed iterates them
         return tqdm(total=total, unit="frame", desc="slam", leave=False)
 
 

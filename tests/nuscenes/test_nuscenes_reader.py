@@ -106,6 +106,7 @@ def test_iter_frames_groups_and_covers_a_missing_radar(mini, reader):
     }
     assert len(seen) == len(all_tokens) and seen <= all_tokens
     assert sum(len(f.sweeps) for f in frames) == 184  # pinned: 39 frames, 11 without FRONT
+    assert reader.frame_count("scene-0001") == len(frames) == 39  # what a progress bar counts
     assert reader.frame_groups("scene-0001")[0] == {
         ch: s.token
         for ch, s in sorted(frames[0].sweeps.items(), key=lambda kv: kv[0] != "RADAR_FRONT")
@@ -118,6 +119,8 @@ def test_iter_frames_other_reference_and_tolerance(reader):
     # a 5 ms tolerance leaves only each anchor's own sweep (channels are 11-48 ms apart)
     tight = reader.frame_groups("scene-0003", sync_tolerance_us=5_000)
     assert all(len(g) == 1 for g in tight)
+    assert reader.frame_count("scene-0003", ref_channel="RADAR_BACK_LEFT") == len(back)
+    assert reader.frame_count("scene-0003", sync_tolerance_us=5_000) == len(tight)
     with pytest.raises(DataError, match="unknown radar channel 'RADAR_TOP'"):
         list(reader.iter_frames("scene-0003", ref_channel="RADAR_TOP"))
 
@@ -375,6 +378,7 @@ def test_scene_info_of_another_dataset_is_a_data_error(mini, reader, clone):
         lambda s: reader.samples(s),
         lambda s: reader.iter_frames(s),
         lambda s: reader.frame_groups(s),
+        lambda s: reader.frame_count(s),
         lambda s: list(reader.iter_sweeps(s, "RADAR_FRONT")),
     ):
         with pytest.raises(DataError, match=match):
@@ -392,6 +396,8 @@ def test_bad_sync_tolerance_is_a_config_error(reader, tol):
         reader.iter_frames("scene-0001", sync_tolerance_us=tol)  # at the call, not on next()
     with pytest.raises(ConfigError, match="sync_tolerance_us"):
         reader.frame_groups("scene-0001", sync_tolerance_us=tol)
+    with pytest.raises(ConfigError, match="sync_tolerance_us"):
+        reader.frame_count("scene-0001", sync_tolerance_us=tol)
 
 
 def test_bad_filters_are_a_config_error(mini, reader):
