@@ -834,8 +834,8 @@ def test_a_proximity_loop_far_from_its_prediction_is_rejected(
 
 def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit(reader, scenes):
     # Two drives of a street in opposite lanes: where both local maps cover the same stretch,
-    # each one's path-following clutter attracts the other's path (docs/results.md, tenth
-    # session), so a turned revisit registers against the candidate's past key frames only.
+    # each one's path-following clutter attracts the other's path (docs/results.md, settings
+    # table), so a turned revisit registers against the candidate's past key frames only.
     cfg = SlamConfig()
     cfg.loops.enabled = False
     pipeline = SlamPipeline(reader, cfg, progress=False)
