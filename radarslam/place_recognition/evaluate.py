@@ -68,6 +68,18 @@ def _split(data: PreparedData, split: str) -> np.ndarray:
     return idx
 
 
+def _query_split(data: PreparedData, split: str) -> np.ndarray:
+    """The frames of a split that may be queried: not the database, not what was trained on."""
+    if split in ("database", "train"):
+        from radarslam.errors import ConfigError
+
+        raise ConfigError(
+            f"split {split!r} cannot be evaluated (its frames are the database or were trained "
+            "on); use 'val' or 'test'"
+        )
+    return _split(data, split)
+
+
 def descriptor_ranking(
     data: PreparedData,
     db_descriptors: np.ndarray,
@@ -223,15 +235,8 @@ def evaluate_method(
 
     ``tune_on_val``: the RCSHR parameters are grid-searched on the val split's ranking first.
     """
-    if split in ("database", "train"):
-        from radarslam.errors import ConfigError
-
-        raise ConfigError(
-            f"split {split!r} cannot be evaluated (its frames are the database or were trained "
-            "on); use 'val' or 'test'"
-        )
+    queries = _query_split(data, split)
     k = max(max(cfg.recall_at), cfg.rerank.top_m if rerank_cfg is not None else 0)
-    queries = _split(data, split)
     ranking = ranking_fn(queries, k)
     results = [evaluate_ranking(data, ranking, cfg, name, split)]
     if rerank_cfg is not None:
@@ -259,7 +264,7 @@ def evaluate_turned(
     """The turned search of SLAM (``loops.reversed_search``) on its own: every query of ``split``
     that has positives driven the other way round, ranked from its images turned by 180 deg
     (``turned_ranking_fn``); a hit is such a positive. None when no query has one."""
-    queries = _split(data, split)
+    queries = _query_split(data, split)
     queries = np.array(
         [q for q in queries if len(data.reversed_positives(int(q), max_heading_error_deg))],
         dtype=np.int64,

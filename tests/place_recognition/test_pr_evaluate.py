@@ -147,4 +147,6 @@ def test_only_held_out_splits_are_evaluated():
     for split in ("database", "train"):
         with pytest.raises(ConfigError, match=f"split '{split}' cannot be evaluated"):
             evaluate_method(data, "oracle", fn, cfg, split)
+        with pytest.raises(ConfigError, match=f"split '{split}' cannot be evaluated"):
+            evaluate_turned(data, "oracle", fn, cfg, split)
     assert evaluate_method(data, "oracle", fn, cfg, "val")[0].split == "val"
