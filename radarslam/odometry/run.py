@@ -90,8 +90,12 @@ class OdometryTrajectory:
     processing_ms: np.ndarray  # (N,) float
     #: Key frames (after a segment's first): motion since the previous key frame and covariance.
     key_frame_motions: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    #: Doppler calibration estimated by the filter at the end of the run (``ours`` only).
+    #: Doppler calibration estimated by the filter at the end of the run for the rig of the
+    #: last scene (``ours`` only).
     calibration: dict | None = None
+    #: Every radar rig's calibration (``ours`` only), each naming its rig and scenes: scenes
+    #: of several vehicles each get their own.
+    calibrations: list[dict] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.timestamps_us)
@@ -238,6 +242,7 @@ def run_odometry(
         processing_ms=np.asarray(rows["ms"], dtype=np.float64),
         key_frame_motions=kf,
         calibration=odo.calibration.as_dict() if hasattr(odo, "calibration") else None,
+        calibrations=[c.as_dict() for c in getattr(odo, "calibrations", [])],
     )
 
 
@@ -275,6 +280,14 @@ def _self_calibrated(reader, infos, config, progress, max_frames_per_scene):
     the early Doppler fits carry the error while the filter converges."""
     kw = {"progress": progress, "max_frames_per_scene": max_frames_per_scene}
     first = run_odometry(reader, infos, single_pass(config, dict(config.mounting_yaw_deg)), **kw)
+    if len(first.calibrations) > 1:
+        # One set of mounting yaws cannot be applied to every sweep of several cars.
+        log.warning(
+            "the scenes come from %d radar rigs (nominal extrinsics differ); the calibration "
+            "pass applies to one rig, so the single pass's per-rig estimates are kept",
+            len(first.calibrations),
+        )
+        return first
     applied = second_pass(config, first.calibration)
     second = run_odometry(reader, infos, applied, **kw)
     return dataclasses.replace(
@@ -326,6 +339,8 @@ def write_outputs(traj: OdometryTrajectory, out_dir: str | Path, config: Odometr
         summary["total"] = scene_metrics(traj)
         if traj.calibration is not None:
             summary["doppler_calibration"] = traj.calibration
+        if len(traj.calibrations) > 1:
+            summary["doppler_calibration_by_rig"] = traj.calibrations
         write_text_atomic(out / "config.yaml", dump_config(config))
         write_json_atomic(out / "summary.json", summary)
 

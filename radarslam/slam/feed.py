@@ -341,10 +341,30 @@ class CalibrationPassResult:
     converged: bool
     scenes_used: int
     scenes_total: int
+    rigs: int = 1  # radar rigs (vehicles) among the scenes used
 
     @property
     def max_sigma_deg(self) -> float:
         return max(self.calibration.get("mounting_yaw_sigma_deg", {}).values(), default=np.nan)
+
+
+def count_rigs(reader, infos, frame_filter) -> int:
+    """How many radar rigs (:func:`~radarslam.odometry.pipeline.rig_extrinsics`) the scenes'
+    first frames show."""
+    from radarslam.odometry.pipeline import rig_extrinsics
+
+    rigs: list[dict[str, bytes]] = []
+    for info in infos:
+        frame = next(iter(reader.iter_frames(info, filters=frame_filter)), None)
+        if frame is None:
+            continue
+        ext = rig_extrinsics(frame)
+        if ext and not any(
+            (shared := r.keys() & ext.keys()) and all(r[ch] == ext[ch] for ch in shared)
+            for r in rigs
+        ):
+            rigs.append(ext)
+    return len(rigs)
 
 
 def estimate_calibration(
@@ -358,6 +378,9 @@ def estimate_calibration(
     from radarslam.odometry.pipeline import RadarOdometry
 
     odometry = RadarOdometry(config)
+    rigs = count_rigs(reader, infos, frame_filter)
+    if rigs > 1:  # one set of mounting yaws cannot serve several cars: no pass
+        return CalibrationPassResult(odometry.calibration.as_dict(), False, 0, len(infos), rigs)
     # key frames as the measure of drive time: known for every scene before it is read
     samples = np.cumsum([max(info.nbr_samples, 1) for info in infos])
     bar = None
@@ -367,7 +390,12 @@ def estimate_calibration(
         bar = tqdm(total=len(infos), unit="scene", desc="calibration pass", leave=False)
 
     def result(used: int, converged: bool) -> CalibrationPassResult:
-        return CalibrationPassResult(odometry.calibration.as_dict(), converged, used, len(infos))
+        return CalibrationPassResult(
+            odometry.calibration.as_dict(),
+            converged,
+            used,
+            len(infos),
+        )
 
     try:
         for i, info in enumerate(infos):

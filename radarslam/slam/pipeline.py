@@ -270,6 +270,14 @@ class SlamPipeline:
             forked=self.config.pipelined and can_fork(),
         )
         self.timings.calibration_pass_s += time.perf_counter() - t0
+        if found.rigs > 1:
+            log.warning(
+                "calibration pass: the scenes come from %d radar rigs (nominal extrinsics "
+                "differ) and one set of mounting yaws cannot serve them all; the run estimates "
+                "each rig's calibration as it goes",
+                found.rigs,
+            )
+            return
         if not found.converged:
             log.warning(
                 "calibration pass: the mounting yaws are known to %.2f deg at best after %d of "

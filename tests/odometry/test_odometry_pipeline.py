@@ -510,3 +510,34 @@ def test_mounting_yaw_setting_is_checked():
         OdometryConfig.model_validate({"mounting_yaw_deg": {"RADAR_FRONT_CENTER": 1.0}})
     with pytest.raises(ValueError, match="not a mounting error"):
         OdometryConfig.model_validate({"mounting_yaw_deg": {"RADAR_FRONT": 45.0}})
+
+
+def test_each_radar_rig_keeps_its_own_calibration(world):
+    """Scenes of two cars in one run: a car whose front-left radar sits 1 deg off its nominal
+    yaw, then a correctly calibrated car (its nominal extrinsics differ, so it is another rig),
+    then the first car again. The second car starts from the prior, exactly as a fresh run of it
+    does, and the first car's estimate is resumed when it comes back."""
+    frames = drive(world, np.random.default_rng(5), num_frames=260, speed_mps=10.0,
+                   yaw_rate_radps=lambda t: 0.1 * np.sin(0.3 * t), **NOISE)  # fmt: skip
+
+    def named(fs, name):
+        return [dataclasses.replace(f, scene_name=name) for f in fs]
+
+    car_a = named(_misnamed(frames, "RADAR_FRONT_LEFT", 1.0), "a")
+    car_b = named(frames, "b")
+    odo = RadarOdometry()
+    run(odo, car_a)
+    first_a = odo.calibration.as_dict()["mounting_yaw_error_deg"]["RADAR_FRONT_LEFT"]
+    assert first_a > 0.5
+    odo.reset()
+    carried = poses(run(odo, car_b))
+    fresh = RadarOdometry()
+    alone = poses(run(fresh, car_b))
+    np.testing.assert_array_equal(carried, alone)
+    assert odo.calibration.as_dict() == fresh.calibration.as_dict()
+    odo.reset()
+    odo.process(car_a[0])  # the first car's rig again: its calibration, folded at the reset
+    assert odo.calibration.as_dict()["mounting_yaw_error_deg"]["RADAR_FRONT_LEFT"] == first_a
+    rigs = [c.as_dict() for c in odo.calibrations]
+    assert [c["scenes"] for c in rigs] == [["a"], ["b"]]
+    assert rigs[0]["rig"] != rigs[1]["rig"] and rigs[0]["rig"] == odo.calibration.rig

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 import radarslam.odometry.pipeline as odometry_pipeline
-from radarslam.slam.feed import PASS_PROJECTION_SLACK, estimate_calibration
+from radarslam.nuscenes.reader import NuScenesRadar
+from radarslam.odometry.config import OdometryConfig
+from radarslam.slam.feed import PASS_PROJECTION_SLACK, count_rigs, estimate_calibration
 from radarslam.types import SceneInfo
 
 
@@ -37,7 +41,7 @@ def _fake_odometry(sigmas: list[float]):
 
 class _Reader:
     def iter_frames(self, info, filters=None):
-        yield info.name
+        yield SimpleNamespace(name=info.name, sweeps={})  # no rig: one car assumed
 
 
 def _scenes(n: int, samples: int = 40) -> list[SceneInfo]:
@@ -80,3 +84,14 @@ def test_without_a_limit_the_pass_runs_every_scene(monkeypatch):
     found = _run(monkeypatch, [1.0, 0.9, 0.8, 0.7], None)
     assert found.converged and found.scenes_used == 4
     assert found.max_sigma_deg == pytest.approx(0.7)
+
+
+def test_no_pass_over_scenes_of_several_cars(real_dataroot):
+    """One set of mounting yaws cannot serve two cars: over a Boston and a Singapore scene the
+    pass does not run and says why (``rigs``)."""
+    reader = NuScenesRadar(real_dataroot, "v1.0-mini")
+    infos = [reader.scene(name) for name in ("scene-0103", "scene-0061")]
+    assert count_rigs(reader, infos[:1], None) == 1
+    assert count_rigs(reader, [infos[0], reader.scene("scene-0655")], None) == 1
+    found = estimate_calibration(reader, infos, OdometryConfig(), None, 0.1)
+    assert found.rigs == 2 and found.scenes_used == 0 and not found.converged
