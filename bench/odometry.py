@@ -22,7 +22,9 @@ length): ATE after SE(2) alignment and from the first pose, RPE translation over
 end-point drift (end position error from the first pose, % of the path), CPU ms per frame.
 Then the Doppler fit's heading over each scene against the ground truth, the key-frame NEES of
 ours (mean over key-frame motions; 3 is consistent) and ours' real-time factor on ``--jobs``
-cores (CPU per frame with reading; 13 Hz radar).
+cores (CPU per frame with reading; 13 Hz radar). Where every scene is its own segment, ours
+also runs over all of them in one run, in order and reversed, as ``radarslam odometry`` over a
+dataroot does: each car's Doppler calibration then carries over to its next scenes.
 """
 
 from __future__ import annotations
