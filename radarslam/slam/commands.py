@@ -187,7 +187,12 @@ def _summary(result) -> dict[str, dict]:
     """``summary.json`` of a SLAM folder: the odometry's Doppler calibration, as in an odometry
     folder's (none when the odometry estimates no calibration)."""
     cal = result.doppler_calibration
-    return {"summary.json": {"doppler_calibration": cal}} if cal else {}
+    if not cal:
+        return {}
+    summary: dict = {"doppler_calibration": cal}
+    if result.doppler_calibrations_by_rig:
+        summary["doppler_calibration_by_rig"] = result.doppler_calibrations_by_rig
+    return {"summary.json": summary}
 
 
 def run_command(

@@ -17,7 +17,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -117,10 +117,12 @@ class ReadingDone:
 @dataclass(frozen=True)
 class OdometryDone:
     """Odometry process -> key-frame side: the odometry's timings (:data:`TIMING_FIELDS`) and
-    its Doppler calibration at the end of the run (``DopplerCalibration.as_dict()``)."""
+    its Doppler calibration at the end of the run (``DopplerCalibration.as_dict()``), and
+    every radar rig's."""
 
     timings: dict[str, Any]
     calibration: dict | None = None
+    calibrations: list[dict] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -155,6 +157,8 @@ class OdometryFeed:
         self.point_mask = point_mask
         #: The odometry's Doppler calibration once every scene has run (the run's estimate).
         self.calibration: dict | None = None
+        #: Every radar rig's (several when the scenes come from several vehicles).
+        self.calibrations: list[dict] = []
 
     def messages(
         self, infos: Sequence[SceneInfo], frames: Callable | None = None
@@ -231,6 +235,7 @@ class OdometryFeed:
             if span is not None:
                 yield SessionSpan(span[0], span[1])
         self.calibration = self.odometry.calibration.as_dict()
+        self.calibrations = [c.as_dict() for c in self.odometry.calibrations]
 
     def run_forked(
         self,
@@ -316,6 +321,7 @@ class OdometryFeed:
                 for name, value in message.timings.items():
                     setattr(self.timings, name, value)
                 self.calibration = message.calibration
+                self.calibrations = message.calibrations
                 break
             if finished.is_set():
                 all_threads()
@@ -683,7 +689,11 @@ def _odometry_process(feed, infos, messages, finished, parent: int, frames=None)
         finished.set()
         t = feed.timings
         messages.put(
-            OdometryDone({name: getattr(t, name) for name in TIMING_FIELDS}, feed.calibration)
+            OdometryDone(
+                {name: getattr(t, name) for name in TIMING_FIELDS},
+                feed.calibration,
+                feed.calibrations,
+            )
         )
     except BaseException as exc:  # handed to the parent, which raises it
         _put_error(messages, exc, "odometry process")

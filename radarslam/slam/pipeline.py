@@ -221,6 +221,7 @@ class SlamPipeline:
             self.timings,
             self._duration_s,
             self._doppler_calibration(),
+            self.feed.calibrations if len(self.feed.calibrations) > 1 else None,
         )
 
     def _scene_infos(self, scenes) -> list[SceneInfo]:

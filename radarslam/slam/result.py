@@ -51,6 +51,8 @@ class SlamResult:
     #: The odometry's Doppler calibration over the run (``summary.json``: mounting yaws per radar
     #: with their sigmas; with a calibration pass, what it applied plus what was left)
     doppler_calibration: dict | None = None
+    #: Every radar rig's calibration when the scenes come from several vehicles (else empty).
+    doppler_calibrations_by_rig: list[dict] = field(default_factory=list)
 
     @property
     def accepted_loops(self) -> list[LoopCandidate]:
@@ -64,6 +66,7 @@ def assemble_result(
     timings: SlamTimings,
     duration_s: float,
     doppler_calibration: dict | None = None,
+    doppler_calibrations_by_rig: list[dict] | None = None,
 ):
     """The :class:`SlamResult` of an optimised graph: each session's key-frame poses (SLAM,
     odometry, ground truth) and the static map built from the SLAM poses."""
@@ -99,4 +102,5 @@ def assemble_result(
         duration_s=duration_s,
         graph=graph,
         doppler_calibration=doppler_calibration,
+        doppler_calibrations_by_rig=list(doppler_calibrations_by_rig or []),
     )

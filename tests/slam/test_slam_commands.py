@@ -35,6 +35,23 @@ def test_run_odometry_only_writes_and_evaluates_a_results_folder(tiny_dataroot, 
     assert "estimated radar mounting-yaw errors (deg): FRONT" in result.output
 
 
+def test_run_over_two_cars_reports_each_rigs_calibration(real_dataroot, tmp_path):
+    """A Boston and a Singapore scene: each car's mounting estimate, with its scenes, and the
+    calibration pass (SLAM's preset) skipped with a warning rather than applied across cars."""
+    out = tmp_path / "res"
+    result = CliRunner().invoke(
+        app,
+        ["run", "--dataroot", str(real_dataroot), "--scenes", "scene-0103,scene-0061",
+         "--out", str(out), "--no-loops", "--no-progress"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    rigs = summary["doppler_calibration_by_rig"]
+    assert [r["scenes"] for r in rigs] == [["scene-0103"], ["scene-0061"]]
+    assert summary["doppler_calibration"] == rigs[1]
+    assert "passes" not in summary["doppler_calibration"]
+
+
 def test_synthetic_dataset_is_generated_once(tmp_path, monkeypatch):
     from radarslam.slam import commands
 
