@@ -391,6 +391,8 @@ class RadarOdometry:
         self._t_us: int | None = None
         self._twist = np.zeros(3)
         self._twist_cov = np.eye(3)
+        #: Yaw rate of the previous frame's fused motion (rad/s): the registration's seed.
+        self._fused_yaw_rate: float | None = None
         self._stopped = False
         self._last_icp_cov: np.ndarray | None = None
         self._rejections = 0
@@ -651,7 +653,7 @@ class RadarOdometry:
             source, frame_down = reg.voxelize(points)
             predicted = pose
             if not first and not reg.empty and len(source) >= cfg.registration.min_source_points:
-                reg_result = reg.align(source, predicted)
+                reg_result = reg.align(source, self._registration_seed(predicted, gap_s))
                 icp_cov = _sym(reg_result.covariance) * cfg.fusion.icp_cov_scale
                 frac = cfg.fusion.icp_along_track_sigma_fraction
                 if frac is not None and fit.valid:
@@ -703,6 +705,7 @@ class RadarOdometry:
         if first:
             self._cross = np.zeros((3, len(self._calib)))
         self._t_us = frame.timestamp_us
+        self._fused_yaw_rate = None if first else float(log_se2(relative)[2]) / gap_s
         self._twist, self._twist_cov = twist, twist_cov
         self._stopped = stopped
         self._last_icp_cov = icp_cov
@@ -731,6 +734,22 @@ class RadarOdometry:
             key_frame_motion=kf_motion,
             key_frame_covariance=kf_cov,
         )
+
+    def _registration_seed(self, predicted: np.ndarray, gap_s: float) -> np.ndarray:
+        """The registration's initial pose (``registration.seed_yaw_rate``): the Doppler
+        prediction, with ``odometry`` its motion since the previous frame turned at the previous
+        frame's fused yaw rate instead of the Doppler's (kiss-icp's constant-velocity model, for
+        the rotation only)."""
+        rate = self._fused_yaw_rate
+        if (
+            self.config.registration.seed_yaw_rate == "doppler"
+            or rate is None
+            or self._pose is None
+        ):
+            return predicted
+        xi = log_se2(invert(self._pose) @ predicted)
+        xi[2] = rate * gap_s
+        return planar(self._pose @ exp_se2(xi))
 
     def _calibrated(
         self, raw: np.ndarray, dt_s: float, mounting_jacobian: np.ndarray
