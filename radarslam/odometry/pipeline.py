@@ -12,8 +12,9 @@ Per frame (the five radars' sweeps nearest in time, :class:`~radarslam.types.Rad
    frames' twists) integrated on SE(2); its covariance is the twists' covariances propagated
    through the SE(2) exponential plus a random-walk process noise.
 4. **Registration**: kiss-icp's own registration aligns the points to kiss-icp's voxel-hash local
-   map, seeded with the predicted pose (not kiss-icp's constant-velocity guess), then a
-   point-to-local-mean Gauss-Newton refinement finishes the alignment. Its covariance is the
+   map, seeded with the predicted pose turned at the previous frame's fused yaw rate (the
+   Doppler's translation, kiss-icp's constant-velocity rotation), then a point-to-local-mean
+   Gauss-Newton refinement finishes the alignment. Its covariance is the
    point-to-line Hessian at the solution (:mod:`.registration`).
 5. **Fusion** (choice documented in docs/odometry.md): an error-state Kalman filter on SE(2).
    The Doppler motion is the filter's *input* (prediction), the registration is a *measurement of
@@ -278,6 +279,13 @@ def rig_extrinsics(frame: RadarFrame) -> dict[str, bytes]:
     }
 
 
+def same_rig(a: dict[str, bytes], b: dict[str, bytes]) -> bool:
+    """Whether two sets of :func:`rig_extrinsics` can be one rig: they share a channel and no
+    shared channel differs (a frame may lack any radar's sweep)."""
+    shared = a.keys() & b.keys()
+    return bool(shared) and all(a[ch] == b[ch] for ch in shared)
+
+
 def rig_id(extrinsics: dict[str, bytes]) -> str:
     """A short stable name of a rig's nominal extrinsics (:func:`rig_extrinsics`)."""
     h = hashlib.sha1()
@@ -294,15 +302,20 @@ class _Rig:
     cars can share one run."""
 
     extrinsics: dict[str, bytes]
-    name: str
     calib: np.ndarray
     calib_cov: np.ndarray
     folded: np.ndarray
     scenes: list[str] = field(default_factory=list)
 
-    def matches(self, extrinsics: dict[str, bytes]) -> bool:
-        shared = self.extrinsics.keys() & extrinsics.keys()
-        return bool(shared) and all(self.extrinsics[ch] == extrinsics[ch] for ch in shared)
+    @property
+    def name(self) -> str:
+        return rig_id(self.extrinsics)
+
+    def learn(self, frame: RadarFrame) -> None:
+        """Add the nominal extrinsics of channels this rig has not shown yet."""
+        if frame.sweeps.keys() - self.extrinsics.keys():
+            for ch, ext in rig_extrinsics(frame).items():
+                self.extrinsics.setdefault(ch, ext)
 
 
 def with_mounting(frame: RadarFrame, rotations: dict[str, np.ndarray]) -> RadarFrame:
@@ -383,6 +396,8 @@ class RadarOdometry:
         """Forget everything (start a new segment); the calibration is kept (and folded into
         the sweeps with ``fusion.calibration.fold_at_reset``)."""
         self._fold_calibration()
+        #: The segment's rig is chosen at its first frame with sweeps.
+        self._rig_pending = True
         self._registration: ScanToMapRegistration | None = None
         self._pose: np.ndarray | None = None
         self._cov = np.zeros((3, 3))
@@ -436,25 +451,33 @@ class RadarOdometry:
             self._rig.folded = self._folded.copy()
 
     def _select_rig(self, frame: RadarFrame) -> None:
-        """At a segment's first frame: make the frame's rig the active one."""
+        """At a segment's first frame with sweeps: make the frame's rig the active one. A frame
+        that shares no channel with the active rig, or disagrees with none it shares, stays
+        with it."""
         extrinsics = rig_extrinsics(frame)
+        self._rig_pending = not extrinsics
         if not extrinsics:
             return
-        if self._rig is not None and self._rig.matches(extrinsics):
-            self._rig.extrinsics.update(extrinsics)
+        active = self._rig
+        if active is not None and (
+            same_rig(active.extrinsics, extrinsics)
+            or not active.extrinsics.keys() & extrinsics.keys()
+        ):
+            active.learn(frame)
             return
         self._store_rig()
-        rig = next((r for r in self._rigs if r.matches(extrinsics)), None)
+        rig = next((r for r in self._rigs if same_rig(r.extrinsics, extrinsics)), None)
         if rig is None:
-            if self._rig is None:  # the first rig takes the calibration the run started with
+            if active is None:  # the first rig takes the calibration the run started with
                 calib, calib_cov, folded = self._calib, self._calib_cov, self._folded
             else:
                 calib, calib_cov, folded = self._prior_calibration()
-            rig = _Rig(dict(extrinsics), rig_id(extrinsics), calib.copy(), calib_cov, folded)
+            rig = _Rig(dict(extrinsics), calib.copy(), calib_cov, folded)
             self._rigs.append(rig)
         else:
-            rig.extrinsics.update(extrinsics)
+            rig.learn(frame)
         self._rig = rig
+        self._cross = np.zeros((3, len(rig.calib)))
         self._calib, self._calib_cov = rig.calib.copy(), rig.calib_cov.copy()
         self._folded = rig.folded.copy()
         self._mounting = self._mounting_transforms()
@@ -572,8 +595,10 @@ class RadarOdometry:
         cfg = self.config
         # Before anything uses the frame: a NaN pose given to kiss-icp aborts the process.
         ground_truth = self.check_frame(frame)
-        if self._pose is None:
+        if self._rig_pending:
             self._select_rig(frame)
+        elif self._rig is not None:
+            self._rig.learn(frame)
         if self._rig is not None and frame.scene_name:
             scenes = self._rig.scenes
             if (not scenes or scenes[-1] != frame.scene_name) and frame.scene_name not in scenes:

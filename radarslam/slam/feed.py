@@ -354,22 +354,32 @@ class CalibrationPassResult:
         return max(self.calibration.get("mounting_yaw_sigma_deg", {}).values(), default=np.nan)
 
 
-def count_rigs(reader, infos, frame_filter) -> int:
-    """How many radar rigs (:func:`~radarslam.odometry.pipeline.rig_extrinsics`) the scenes'
-    first frames show."""
-    from radarslam.odometry.pipeline import rig_extrinsics
+def count_rigs(reader, infos, frame_filter, frames_per_scene: int = 30) -> int:
+    """How many radar rigs (:func:`~radarslam.odometry.pipeline.rig_extrinsics`) the scenes
+    show, from each scene's first frames (until every channel was seen, at most
+    ``frames_per_scene``): a scene whose radars share no channel with a rig, or differ on none,
+    is that rig's."""
+    from radarslam.odometry.pipeline import rig_extrinsics, same_rig
+    from radarslam.types import RADAR_CHANNELS
 
     rigs: list[dict[str, bytes]] = []
     for info in infos:
-        frame = next(iter(reader.iter_frames(info, filters=frame_filter)), None)
-        if frame is None:
+        ext: dict[str, bytes] = {}
+        for k, frame in enumerate(reader.iter_frames(info, filters=frame_filter)):
+            for ch, value in rig_extrinsics(frame).items():
+                ext.setdefault(ch, value)
+            if len(ext) == len(RADAR_CHANNELS) or k + 1 >= frames_per_scene:
+                break
+        if not ext:
             continue
-        ext = rig_extrinsics(frame)
-        if ext and not any(
-            (shared := r.keys() & ext.keys()) and all(r[ch] == ext[ch] for ch in shared)
-            for r in rigs
-        ):
+        rig = next((r for r in rigs if same_rig(r, ext)), None)
+        if rig is None and rigs and not any(r.keys() & ext.keys() for r in rigs):
+            rig = rigs[0]
+        if rig is None:
             rigs.append(ext)
+        else:
+            for ch, value in ext.items():
+                rig.setdefault(ch, value)
     return len(rigs)
 
 

@@ -541,3 +541,22 @@ def test_each_radar_rig_keeps_its_own_calibration(world):
     rigs = [c.as_dict() for c in odo.calibrations]
     assert [c["scenes"] for c in rigs] == [["a"], ["b"]]
     assert rigs[0]["rig"] != rigs[1]["rig"] and rigs[0]["rig"] == odo.calibration.rig
+
+
+def test_a_segment_showing_other_radars_first_stays_with_its_rig(world):
+    """Frames carry only the radars whose sweeps arrived: a segment whose first frames show
+    channels the rig has not shown yet (nothing to disagree with) is the same rig."""
+    frames = drive(world, np.random.default_rng(6), num_frames=40, **NOISE)
+
+    def only(fs, channels):
+        return [
+            dataclasses.replace(f, sweeps={c: s for c, s in f.sweeps.items() if c in channels})
+            for f in fs
+        ]
+
+    odo = RadarOdometry()
+    run(odo, only(frames[:20], {"RADAR_FRONT", "RADAR_FRONT_LEFT"}))
+    odo.reset()
+    run(odo, only(frames[20:22], {"RADAR_BACK_LEFT"}) + frames[22:])
+    assert len(odo.calibrations) == 1
+    assert set(odo._rigs[0].extrinsics) == set(frames[0].sweeps)
