@@ -127,12 +127,6 @@ class CalibrationConfig(StrictModel):
     #: fits start calibrated instead of waiting for the filter. The reported estimate stays the
     #: total.
     fold_at_reset: bool = True
-    #: At a fold, the mounting yaws' covariance starts again from the prior (the estimate is kept
-    #: as the new nominal): one 20 s scene's estimate carries that scene's errors as well as the
-    #: car's, and the next scene re-estimates what is left. On the real split in one run (median
-    #: over 5 Doppler seeds) 0.106 / 0.127 m in order / reversed against 0.111 / 0.129 m with the
-    #: covariance kept, every carried scene as good or better (scene-0916 0.105 against 0.136 m).
-    fold_resets_covariance: bool = True
 
 
 class FusionConfig(StrictModel):

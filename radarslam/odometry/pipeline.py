@@ -383,18 +383,13 @@ class RadarOdometry:
         return out
 
     def _fold_calibration(self) -> None:
-        """Apply the estimated mounting yaws to the sweeps from now on and zero the states; with
-        ``fold_resets_covariance`` the yaws' covariance starts again from the prior."""
+        """Apply the estimated mounting yaws to the sweeps from now on and zero the states."""
         cal = self.config.fusion.calibration
         n = len(RADAR_CHANNELS)
         if cal.yaw_bias_model != "mounting" or not cal.fold_at_reset or not self._calib[:n].any():
             return
         self._folded = self._folded + self._calib[:n]
         self._calib[:n] = 0.0
-        if cal.fold_resets_covariance:
-            prior = self._prior_calibration()[1]
-            self._calib_cov[:n, :] = prior[:n, :]
-            self._calib_cov[:, :n] = prior[:, :n]
         self._mounting = self._mounting_transforms()
 
     def reset(self) -> None:
