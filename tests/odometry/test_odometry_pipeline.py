@@ -560,3 +560,21 @@ def test_a_segment_showing_other_radars_first_stays_with_its_rig(world):
     run(odo, only(frames[20:22], {"RADAR_BACK_LEFT"}) + frames[22:])
     assert len(odo.calibrations) == 1
     assert set(odo._rigs[0].extrinsics) == set(frames[0].sweeps)
+
+
+def test_registration_seed_turns_at_the_previous_fused_yaw_rate():
+    """``registration.seed_yaw_rate``: "odometry" keeps the Doppler prediction's motion but turns
+    it at the previous frame's fused yaw rate; "doppler" (or no previous motion) keeps it."""
+    odo = RadarOdometry()
+    prev = se2_to_matrix(10.0, 5.0, 0.3)
+    doppler_motion = np.array([1.0, 0.02, 0.05])  # one frame's Doppler twist x dt, 0.05 rad
+    predicted = prev @ exp_se2(doppler_motion)
+    odo._pose = prev
+    assert odo._registration_seed(predicted, 0.075) is predicted  # no fused motion yet
+    odo._fused_yaw_rate = 0.2  # rad/s
+    seed = odo._registration_seed(predicted, 0.075)
+    motion = log_se2(invert(prev) @ seed)
+    np.testing.assert_allclose(motion, [*doppler_motion[:2], 0.2 * 0.075], atol=1e-12)
+    doppler = OdometryConfig.model_validate({"registration": {"seed_yaw_rate": "doppler"}})
+    odo.config = doppler
+    assert odo._registration_seed(predicted, 0.075) is predicted
