@@ -364,6 +364,18 @@ class NuScenesRadar:
             yield self._sweep(int(r), filters, info.name)
         self._report_skips(info.name, before)
 
+    def scene_extrinsics(self, scene: str | SceneInfo) -> dict[str, np.ndarray]:
+        """Each radar's ``ego_from_sensor`` at its first sweep of the scene (4x4; radars
+        without a sweep there are absent; no file is read)."""
+        scene_row = self.tables.small.scene_row[self.scene(scene).name]
+        out = {}
+        for c, ch in enumerate(RADAR_CHANNELS):
+            rows = self._scene_channel_rows(scene_row, c)
+            if len(rows):
+                cs = int(self.tables.radar.calibrated_sensor[rows[0]])
+                out[ch] = self.tables.ego_from_sensor(cs)
+        return out
+
     def sweep_tokens(self, scene: str | SceneInfo, channel: str) -> list[str]:
         """sample_data tokens of one radar in a scene, in time order (no file is read)."""
         return [self.tables.radar.token[r].decode() for r in self._rows(scene, channel)]

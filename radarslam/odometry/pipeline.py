@@ -48,6 +48,7 @@ import dataclasses
 import hashlib
 import math
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -270,20 +271,44 @@ def mounting_rotations(mounting_yaw_deg: dict[str, float]) -> dict[str, np.ndarr
     }
 
 
-def rig_extrinsics(frame: RadarFrame) -> dict[str, bytes]:
-    """Per channel, the nominal ``ego_from_sensor`` of ``frame``'s sweeps (rounded to 0.1 mm and
-    1e-4 of a rotation entry): what tells one vehicle's radar rig from another's."""
+def nominal_extrinsics(ego_from_sensor: Mapping[str, np.ndarray]) -> dict[str, bytes]:
+    """Per channel, the nominal ``ego_from_sensor`` rounded to 0.1 mm and 1e-4 of a rotation
+    entry: what tells one vehicle's radar rig from another's."""
     return {
-        ch: np.round(np.asarray(sw.ego_from_sensor, dtype=np.float64), 4).tobytes()
-        for ch, sw in frame.sweeps.items()
+        ch: np.round(np.asarray(m, dtype=np.float64), 4).tobytes()
+        for ch, m in ego_from_sensor.items()
     }
 
 
+def rig_extrinsics(frame: RadarFrame) -> dict[str, bytes]:
+    """:func:`nominal_extrinsics` of ``frame``'s sweeps."""
+    return nominal_extrinsics({ch: sw.ego_from_sensor for ch, sw in frame.sweeps.items()})
+
+
 def same_rig(a: dict[str, bytes], b: dict[str, bytes]) -> bool:
-    """Whether two sets of :func:`rig_extrinsics` can be one rig: they share a channel and no
-    shared channel differs (a frame may lack any radar's sweep)."""
+    """Whether two sets of :func:`nominal_extrinsics` can be one rig: they share a channel and
+    no shared channel differs (a frame may lack any radar's sweep)."""
     shared = a.keys() & b.keys()
     return bool(shared) and all(a[ch] == b[ch] for ch in shared)
+
+
+def find_rig(
+    known: Sequence[dict[str, bytes]], extrinsics: dict[str, bytes], current: int | None
+) -> int | None:
+    """Index in ``known`` of the rig ``extrinsics`` belong to, or None for a new rig: the
+    ``current`` one while nothing contradicts it (no shared channel is no evidence), else the
+    first that shares a channel and agrees on all shared."""
+    if current is not None:
+        rig = known[current]
+        if same_rig(rig, extrinsics) or not rig.keys() & extrinsics.keys():
+            return current
+    return next((i for i, rig in enumerate(known) if same_rig(rig, extrinsics)), None)
+
+
+def merge_extrinsics(into: dict[str, bytes], extrinsics: dict[str, bytes]) -> None:
+    """Add the channels ``into`` has not shown yet."""
+    for ch, value in extrinsics.items():
+        into.setdefault(ch, value)
 
 
 def rig_id(extrinsics: dict[str, bytes]) -> str:
@@ -314,8 +339,7 @@ class _Rig:
     def learn(self, frame: RadarFrame) -> None:
         """Add the nominal extrinsics of channels this rig has not shown yet."""
         if frame.sweeps.keys() - self.extrinsics.keys():
-            for ch, ext in rig_extrinsics(frame).items():
-                self.extrinsics.setdefault(ch, ext)
+            merge_extrinsics(self.extrinsics, rig_extrinsics(frame))
 
 
 def with_mounting(frame: RadarFrame, rotations: dict[str, np.ndarray]) -> RadarFrame:
@@ -423,8 +447,12 @@ class RadarOdometry:
     @property
     def calibrations(self) -> list[DopplerCalibration]:
         """The calibration of every rig seen, in the order first seen."""
-        self._store_rig()
-        return [self._calibration_of(r.calib, r.calib_cov, r.folded, r) for r in self._rigs]
+        return [
+            self.calibration
+            if r is self._rig
+            else self._calibration_of(r.calib, r.calib_cov, r.folded, r)
+            for r in self._rigs
+        ]
 
     def _calibration_of(
         self, calib: np.ndarray, calib_cov: np.ndarray, folded: np.ndarray, rig: _Rig | None
@@ -459,15 +487,14 @@ class RadarOdometry:
         if not extrinsics:
             return
         active = self._rig
-        if active is not None and (
-            same_rig(active.extrinsics, extrinsics)
-            or not active.extrinsics.keys() & extrinsics.keys()
-        ):
-            active.learn(frame)
-            return
+        current = None if active is None else self._rigs.index(active)
+        found = find_rig([r.extrinsics for r in self._rigs], extrinsics, current)
+        if found is not None:
+            merge_extrinsics(self._rigs[found].extrinsics, extrinsics)
+            if found == current:
+                return
         self._store_rig()
-        rig = next((r for r in self._rigs if same_rig(r.extrinsics, extrinsics)), None)
-        if rig is None:
+        if found is None:
             if active is None:  # the first rig takes the calibration the run started with
                 calib, calib_cov, folded = self._calib, self._calib_cov, self._folded
             else:
@@ -475,7 +502,7 @@ class RadarOdometry:
             rig = _Rig(dict(extrinsics), calib.copy(), calib_cov, folded)
             self._rigs.append(rig)
         else:
-            rig.learn(frame)
+            rig = self._rigs[found]
         self._rig = rig
         self._cross = np.zeros((3, len(rig.calib)))
         self._calib, self._calib_cov = rig.calib.copy(), rig.calib_cov.copy()

@@ -354,32 +354,24 @@ class CalibrationPassResult:
         return max(self.calibration.get("mounting_yaw_sigma_deg", {}).values(), default=np.nan)
 
 
-def count_rigs(reader, infos, frame_filter, frames_per_scene: int = 30) -> int:
-    """How many radar rigs (:func:`~radarslam.odometry.pipeline.rig_extrinsics`) the scenes
-    show, from each scene's first frames (until every channel was seen, at most
-    ``frames_per_scene``): a scene whose radars share no channel with a rig, or differ on none,
-    is that rig's."""
-    from radarslam.odometry.pipeline import rig_extrinsics, same_rig
-    from radarslam.types import RADAR_CHANNELS
+def count_rigs(reader, infos) -> int:
+    """How many radar rigs the scenes come from, by their radars' nominal extrinsics
+    (``reader.scene_extrinsics``, no file read) and the rule the odometry uses to tell rigs
+    apart (:func:`~radarslam.odometry.pipeline.find_rig`)."""
+    from radarslam.odometry.pipeline import find_rig, merge_extrinsics, nominal_extrinsics
 
     rigs: list[dict[str, bytes]] = []
+    current = None
     for info in infos:
-        ext: dict[str, bytes] = {}
-        for k, frame in enumerate(reader.iter_frames(info, filters=frame_filter)):
-            for ch, value in rig_extrinsics(frame).items():
-                ext.setdefault(ch, value)
-            if len(ext) == len(RADAR_CHANNELS) or k + 1 >= frames_per_scene:
-                break
+        ext = nominal_extrinsics(reader.scene_extrinsics(info))
         if not ext:
             continue
-        rig = next((r for r in rigs if same_rig(r, ext)), None)
-        if rig is None and rigs and not any(r.keys() & ext.keys() for r in rigs):
-            rig = rigs[0]
-        if rig is None:
+        current = find_rig(rigs, ext, current)
+        if current is None:
             rigs.append(ext)
+            current = len(rigs) - 1
         else:
-            for ch, value in ext.items():
-                rig.setdefault(ch, value)
+            merge_extrinsics(rigs[current], ext)
     return len(rigs)
 
 
@@ -394,7 +386,7 @@ def estimate_calibration(
     from radarslam.odometry.pipeline import RadarOdometry
 
     odometry = RadarOdometry(config)
-    rigs = count_rigs(reader, infos, frame_filter)
+    rigs = count_rigs(reader, infos)
     if rigs > 1:  # one set of mounting yaws cannot serve several cars: no pass
         return CalibrationPassResult(odometry.calibration.as_dict(), False, 0, len(infos), rigs)
     # key frames as the measure of drive time: known for every scene before it is read
@@ -406,12 +398,7 @@ def estimate_calibration(
         bar = tqdm(total=len(infos), unit="scene", desc="calibration pass", leave=False)
 
     def result(used: int, converged: bool) -> CalibrationPassResult:
-        return CalibrationPassResult(
-            odometry.calibration.as_dict(),
-            converged,
-            used,
-            len(infos),
-        )
+        return CalibrationPassResult(odometry.calibration.as_dict(), converged, used, len(infos))
 
     try:
         for i, info in enumerate(infos):

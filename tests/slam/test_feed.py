@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
@@ -41,7 +39,10 @@ def _fake_odometry(sigmas: list[float]):
 
 class _Reader:
     def iter_frames(self, info, filters=None):
-        yield SimpleNamespace(name=info.name, sweeps={})  # no rig: one car assumed
+        yield info.name
+
+    def scene_extrinsics(self, info):
+        return {}  # no rig: one car assumed
 
 
 def _scenes(n: int, samples: int = 40) -> list[SceneInfo]:
@@ -91,7 +92,7 @@ def test_no_pass_over_scenes_of_several_cars(real_dataroot):
     pass does not run and says why (``rigs``)."""
     reader = NuScenesRadar(real_dataroot, "v1.0-mini")
     infos = [reader.scene(name) for name in ("scene-0103", "scene-0061")]
-    assert count_rigs(reader, infos[:1], None) == 1
-    assert count_rigs(reader, [infos[0], reader.scene("scene-0655")], None) == 1
+    assert count_rigs(reader, infos[:1]) == 1
+    assert count_rigs(reader, [infos[0], reader.scene("scene-0655")]) == 1
     found = estimate_calibration(reader, infos, OdometryConfig(), None, 0.1)
     assert found.rigs == 2 and found.scenes_used == 0 and not found.converged
