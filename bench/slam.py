@@ -4,6 +4,8 @@
                                           # into 2 scenes of 90 s (3.5 km), in data/bench-city-long
     python bench/slam.py --run subset     # the city subset: 8 logs on 2 routes, 32 scenes of 20 s
                                           # (2.5 km), in data/bench-city
+    python bench/slam.py --run contiguous # 4 logs on one route, each cut into 6 scenes of 20 s
+                                          # 0.2-0.4 s apart, in data/bench-city-contiguous
     python bench/slam.py --dataroot D --version v1.0-trainval   # real data
 
 The long scenes are the headline: 20 s scenes leave odometry almost nothing to correct, so the
@@ -105,6 +107,8 @@ def rebuild_with_false_loops(pipeline, fraction: float, rng, robust: str = "cauc
         anchor = "prior" if first else "unknown"
         graph.add_session(name, pipeline.session_placement(name) @ kfs[0].odometry_pose, anchor)
         first = False
+        if kfs[0].follows is not None and kfs[0].follows in graph:
+            graph.add_continuation(kfs[0].follows, kfs[0].key, kfs[0].relative, kfs[0].relative_cov)
         for a, b in itertools.pairwise(kfs):
             graph.add_odometry(name, a.key.index, b.key.index, b.relative, b.relative_cov)
     loops = list(pipeline.loop_information.items())
@@ -160,7 +164,7 @@ def _norm(value):
     return [_norm(v) for v in value] if isinstance(value, (list, tuple)) else value
 
 
-#: The two city runs: generation settings (None: the city preset's own) and where they live.
+#: The city runs: generation settings (None: the city preset's own) and where they live.
 _RUNS = {
     "long": {
         "dataroot": Path("data/bench-city-long"),
@@ -168,6 +172,7 @@ _RUNS = {
         "routes": 1,
         "scenes_per_log": 2,
         "scene_duration_s": 90.0,
+        "scene_gap_s": None,
     },
     "subset": {
         "dataroot": Path("data/bench-city"),
@@ -175,6 +180,17 @@ _RUNS = {
         "routes": 2,
         "scenes_per_log": None,
         "scene_duration_s": None,
+        "scene_gap_s": None,
+    },
+    # Scenes cut back to back from each drive, as a continuous recording split into scenes is:
+    # each scene continues the one before it (SlamConfig.continue_log_scenes).
+    "contiguous": {
+        "dataroot": Path("data/bench-city-contiguous"),
+        "logs": 4,
+        "routes": 1,
+        "scenes_per_log": 6,
+        "scene_duration_s": 20.0,
+        "scene_gap_s": (0.2, 0.4),
     },
 }
 
@@ -193,6 +209,14 @@ def main() -> None:
     ap.add_argument("--routes", type=int, default=None, help="shared routes among those logs")
     ap.add_argument("--scenes-per-log", type=int, default=None, help="default: the run's")
     ap.add_argument("--scene-duration-s", type=float, default=None, help="default: the run's")
+    ap.add_argument(
+        "--scene-gap-s",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("MIN", "MAX"),
+        help="time between a log's scenes (default: the run's)",
+    )
     ap.add_argument("--max-scenes", type=int, default=None)
     ap.add_argument("--out", type=Path, default=Path("runs/bench-slam"))
     ap.add_argument("--jobs", type=int, default=2)
@@ -238,6 +262,8 @@ def main() -> None:
         overrides.append(f"schedule.scenes_per_log={args.scenes_per_log}")
     if args.scene_duration_s is not None:
         overrides.append(f"schedule.scene_duration_s={args.scene_duration_s}")
+    if args.scene_gap_s is not None:
+        overrides.append(f"schedule.scene_gap_s=[{args.scene_gap_s[0]}, {args.scene_gap_s[1]}]")
     if not is_complete(args.dataroot, args.version):
         print(f"generating city subset ({args.logs} logs, {args.routes} routes) in {args.dataroot}")
         simulate("city", args.dataroot, jobs=args.jobs, overrides=overrides)

@@ -416,6 +416,12 @@ class RadarOdometry:
         self._calib[:n] = 0.0
         self._mounting = self._mounting_transforms()
 
+    def fold_calibration(self) -> None:
+        """Between two scenes of one drive, where the odometry goes on without a reset: the
+        estimated mounting yaws are applied to the sweeps from now on, as at a reset (with
+        ``fusion.calibration.fold_at_reset``), the pose and the local map kept."""
+        self._fold_calibration()
+
     def reset(self) -> None:
         """Forget everything (start a new segment); the calibration is kept (and folded into
         the sweeps with ``fusion.calibration.fold_at_reset``)."""

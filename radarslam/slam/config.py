@@ -166,6 +166,12 @@ class SlamConfig(StrictModel):
     #: nuScenes global frame; no other ground truth is used) or the identity. Later sessions
     #: always start unknown and are placed by loop closures.
     first_session_anchor: Literal["ground_truth", "identity"] = "ground_truth"
+    #: A scene that starts within the odometry's ``fusion.max_gap_s`` of the end of the scene
+    #: processed just before it, cut from the same log (one drive), continues that scene's
+    #: odometry instead of starting unknown: the vehicle drove on through the gap, so the two
+    #: sessions are one chain in the pose graph, tied by the odometry's key-frame motion across
+    #: the gap. False: every scene is its own chain, placed only by loops.
+    continue_log_scenes: bool = True
     #: With ``odometry.fusion.calibration.passes: 2`` the odometry first runs over the scenes,
     #: in order, to estimate the vehicle's mounting yaws; it stops after the scene at which every
     #: yaw's sigma is below this (deg), so a run of many scenes pays for the few it takes to

@@ -11,6 +11,7 @@ key-frame work (recognition, registration, iSAM2) overlap, with identical result
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import os
 import sys
@@ -60,9 +61,11 @@ def key_frame_input(frame, res, buffer) -> KeyFrameInput:
 
 @dataclass(frozen=True)
 class SessionStart:
-    """The frames that follow belong to the scene ``name``, a new session."""
+    """The frames that follow belong to the scene ``name``, a new session; ``continues`` names
+    the session whose odometry it continues (``SlamConfig.continue_log_scenes``), else None."""
 
     name: str
+    continues: str | None = None
 
 
 @dataclass(frozen=True)
@@ -139,10 +142,21 @@ TIMING_FIELDS = ("data_s", "odometry_s", "key_frame_s", "frames")
 # --- the odometry side ---------------------------------------------------------------------------
 
 
+def drives_on(info: SceneInfo, previous: tuple[SceneInfo, int] | None, first, max_gap_us) -> bool:
+    """Whether the scene ``info``, whose first frame is ``first`` (None: it has none), continues
+    the drive of ``previous`` (the scene read just before it, with its last frame's time): cut
+    from the same log, starting within ``max_gap_us`` of that scene's end."""
+    if first is None or previous is None or not info.log_token:
+        return False
+    before, last_us = previous
+    return info.log_token == before.log_token and 0 < first.timestamp_us - last_us <= max_gap_us
+
+
 class OdometryFeed:
     """Odometry over every frame of the scenes, as :data:`FeedMessage` s.
 
-    ``odometry`` is reset for every scene; the session processed first may start on its ground
+    ``odometry`` is reset for every scene but one that continues the scene before it
+    (``config.continue_log_scenes``); the session processed first may start on its ground
     truth (``config.first_session_anchor``), later ones start unknown. ``point_mask`` makes the
     key-frame clouds' dynamic-point mask (called per scene, only when
     ``key_frames.dynamic_points`` is not ``odometry``). The odometry's timings go to ``timings``.
@@ -186,21 +200,39 @@ class OdometryFeed:
         # its links depended on a few marginal registrations: one session 100 m off, or 2 of 8).
         cloud_mounting = mounting_rotations(cfg.odometry.mounting_yaw_deg)
         use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
+        max_gap_us = self.odometry.config.fusion.max_gap_s * 1e6
+        previous: tuple[SceneInfo, int] | None = None  # the last scene with frames, its end
+        buffer = None
         for n, info in enumerate(infos):
-            yield SessionStart(info.name)
-            self.odometry.config.initial_pose = cfg.first_session_anchor if n == 0 else "identity"
-            self.odometry.reset()
-            buffer = SweepBuffer(
-                nsweeps=cfg.key_frames.nsweeps,
-                ref_channel=cfg.key_frames.ref_channel,
-                min_distance_m=cfg.key_frames.min_distance_m,
-                point_mask=self.point_mask() if not use_odometry_mask else None,
-            )
+            scene_frames = iter(read(info))
+            t_data = time.perf_counter()
+            first = next(scene_frames, None)
+            if own_reading:
+                timings.data_s += time.perf_counter() - t_data
+            continues = None
+            if cfg.continue_log_scenes and drives_on(info, previous, first, max_gap_us):
+                assert previous is not None
+                continues = previous[0].name
+            yield SessionStart(info.name, continues)
+            if continues is not None:  # the odometry and the sweep buffer drive on
+                self.odometry.fold_calibration()
+            else:
+                self.odometry.config.initial_pose = (
+                    cfg.first_session_anchor if n == 0 else "identity"
+                )
+                self.odometry.reset()
+                buffer = SweepBuffer(
+                    nsweeps=cfg.key_frames.nsweeps,
+                    ref_channel=cfg.key_frames.ref_channel,
+                    min_distance_m=cfg.key_frames.min_distance_m,
+                    point_mask=self.point_mask() if not use_odometry_mask else None,
+                )
+            assert buffer is not None
             span = None
             health = DopplerHealth(self.odometry.config.doppler.min_points)
             pending = 0  # frames not yet reported to the progress bar
             t_data = time.perf_counter()
-            for frame in read(info):
+            for frame in itertools.chain([first], scene_frames) if first is not None else ():
                 t0 = time.perf_counter()
                 if own_reading:  # else the reading process reports its own time
                     timings.data_s += t0 - t_data
@@ -234,6 +266,7 @@ class OdometryFeed:
                 log.warning("scene %s: %s: its odometry is unreliable", info.name, why)
             if span is not None:
                 yield SessionSpan(span[0], span[1])
+            previous = (info, span[1]) if span is not None else None
         self.calibration = self.odometry.calibration.as_dict()
         self.calibrations = [c.as_dict() for c in self.odometry.calibrations]
 
@@ -376,9 +409,16 @@ def count_rigs(reader, infos) -> int:
 
 
 def estimate_calibration(
-    reader, infos, config, frame_filter, max_sigma_deg: float | None, progress: bool = False
+    reader,
+    infos,
+    config,
+    frame_filter,
+    max_sigma_deg: float | None,
+    progress: bool = False,
+    continue_log_scenes: bool = True,
 ) -> CalibrationPassResult:
-    """The odometry (``config``) over the scenes in order, each from a reset as in a SLAM run,
+    """The odometry (``config``) over the scenes in order, each from a reset as in a SLAM run
+    (with ``continue_log_scenes``, a scene that continues the one before it drives on),
     until every mounting yaw's sigma is below ``max_sigma_deg`` (None: every scene). From the
     second scene on it also stops once the key frames left could not get there
     (:data:`PASS_PROJECTION_SLACK`): a run of short scenes then does not pay for a pass it cannot
@@ -400,11 +440,21 @@ def estimate_calibration(
     def result(used: int, converged: bool) -> CalibrationPassResult:
         return CalibrationPassResult(odometry.calibration.as_dict(), converged, used, len(infos))
 
+    max_gap_us = config.fusion.max_gap_s * 1e6
+    previous: tuple[SceneInfo, int] | None = None
     try:
         for i, info in enumerate(infos):
-            odometry.reset()
-            for frame in reader.iter_frames(info, filters=frame_filter):
+            frames = iter(reader.iter_frames(info, filters=frame_filter))
+            first = next(frames, None)
+            if continue_log_scenes and drives_on(info, previous, first, max_gap_us):
+                odometry.fold_calibration()
+            else:
+                odometry.reset()
+            last_us = None
+            for frame in itertools.chain([first], frames) if first is not None else ():
                 odometry.process(frame)
+                last_us = frame.timestamp_us
+            previous = (info, last_us) if last_us is not None else None
             if bar is not None:
                 bar.update(1)
             if max_sigma_deg is None:
@@ -429,12 +479,15 @@ def calibration_pass(
     max_sigma_deg: float | None,
     progress: bool = False,
     forked: bool = True,
+    continue_log_scenes: bool = True,
 ) -> CalibrationPassResult:
     """:func:`estimate_calibration`, with ``forked`` in a forked process as the run's odometry
     is: kiss-icp may ``abort()`` the process it runs in, which then ends with a clear error
     instead of taking this one with it."""
     if not forked:
-        return estimate_calibration(reader, infos, config, frame_filter, max_sigma_deg, progress)
+        return estimate_calibration(
+            reader, infos, config, frame_filter, max_sigma_deg, progress, continue_log_scenes
+        )
     import multiprocessing as mp
     import queue as queue_mod
 
@@ -444,7 +497,17 @@ def calibration_pass(
     results = ctx.Queue(maxsize=1)
     proc = ctx.Process(
         target=_calibration_process,
-        args=(reader, infos, config, frame_filter, max_sigma_deg, progress, results, os.getpid()),
+        args=(
+            reader,
+            infos,
+            config,
+            frame_filter,
+            max_sigma_deg,
+            progress,
+            continue_log_scenes,
+            results,
+            os.getpid(),
+        ),
         name="slam-calibration",
     )
     proc.daemon = True
@@ -472,12 +535,28 @@ def calibration_pass(
 
 
 def _calibration_process(
-    reader, infos, config, frame_filter, max_sigma_deg, progress, results, parent: int
+    reader,
+    infos,
+    config,
+    frame_filter,
+    max_sigma_deg,
+    progress,
+    continue_log_scenes,
+    results,
+    parent: int,
 ) -> None:
     try:
         helper_process_setup(parent)
         results.put(
-            estimate_calibration(reader, infos, config, frame_filter, max_sigma_deg, progress)
+            estimate_calibration(
+                reader,
+                infos,
+                config,
+                frame_filter,
+                max_sigma_deg,
+                progress,
+                continue_log_scenes,
+            )
         )
     except BaseException as exc:  # handed to the parent, which raises it
         _put_error(results, exc, "calibration pass process")

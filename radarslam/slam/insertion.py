@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from radarslam.geometry import invert
 from radarslam.io.loops import LoopCandidate, NodeKey
 from radarslam.slam.state import Group, KeyFrame, MapState, Session
 
@@ -48,11 +49,28 @@ class GraphInsertion:
     def insert_session(
         self, session: Session, world_from_session: np.ndarray, anchor: Anchor
     ) -> None:
-        """Put a session's odometry chain into the graph at ``world_from_session``."""
+        """Put a session's odometry chain into the graph at ``world_from_session``. A session
+        that continues another one's odometry goes on from that one's last key frame (inserted
+        first if it is not yet), through the odometry's motion across the gap."""
         kfs = session.key_frames
-        if not kfs:
+        if session.inserted or not kfs:
             return
-        self.graph.add_session(session.name, world_from_session @ kfs[0].odometry_pose, anchor)
+        first = kfs[0]
+        if first.follows is not None:
+            before = self.state.sessions[first.follows.session]
+            if not before.inserted:
+                group = self.state.groups[before.group]
+                self.insert_session(before, group.from_session[before.name], anchor)
+            anchor = "unknown"  # the chain places it; the weak prior only names its session
+            assert first.relative is not None and first.relative_cov is not None
+            world_from_first = self.graph.current_pose(first.follows) @ first.relative
+            world_from_session = world_from_first @ invert(first.odometry_pose)
+        self.graph.add_session(session.name, world_from_session @ first.odometry_pose, anchor)
+        if first.follows is not None:
+            assert first.relative is not None and first.relative_cov is not None
+            self.graph.add_continuation(
+                first.follows, first.key, first.relative, first.relative_cov
+            )
         session.inserted = True
         session.world_from_session = world_from_session
         for kf in kfs[1:]:

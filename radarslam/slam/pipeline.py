@@ -40,11 +40,14 @@ Step 1 (and the key-frame clouds) never depends on steps 2b-2g, so with ``pipeli
 it runs in a forked process that streams key-frame clouds to this one: on two cores odometry and
 loop closure overlap, with identical results.
 
-Multi-session. Each scene is its own odometry chain and starts as its own *group*. Verified loops
-between two groups are votes on their relative placement; once ``link_min_consistent_loops`` votes
-agree (each vote's placement puts the others' loop key frames within ``link_consistency_m``), one
-of them well conditioned, the groups merge (the other votes are rejected as false loops). The first
-session's group is the map: a group that merges into it enters the graph with its poses moved
+Multi-session. Each scene is its own odometry chain and starts as its own *group*, except a scene
+that continues the one before it (same log, within the odometry's gap limit:
+``continue_log_scenes``): its odometry drives on, it joins that scene's group in the same frame,
+and the pose graph ties its first key frame to the other's last by the odometry's motion. Verified
+loops between two groups are votes on their relative placement; once ``link_min_consistent_loops``
+votes agree (each vote's placement puts the others' loop key frames within ``link_consistency_m``),
+one of them well conditioned, the groups merge (the other votes are rejected as false loops). The
+first session's group is the map: a group that merges into it enters the graph with its poses moved
 there (iSAM2 never sees a chain initialised kilometres away), together with the loops found inside
 it. Groups that never reach the map are added at the end on their own weak anchor and reported as
 separate components, not forced into the map. When two groups merge, the key frames processed
@@ -269,6 +272,7 @@ class SlamPipeline:
             limit,
             progress=self.progress,
             forked=self.config.pipelined and can_fork(),
+            continue_log_scenes=self.config.continue_log_scenes,
         )
         self.timings.calibration_pass_s += time.perf_counter() - t0
         if found.rigs > 1:
@@ -362,7 +366,7 @@ class SlamPipeline:
     def handle(self, message: FeedMessage, bar=None) -> None:
         """One message of the feed."""
         if isinstance(message, SessionStart):
-            self.start_session(message.name)
+            self.start_session(message.name, message.continues)
         elif isinstance(message, KeyFrameReady):
             self.add_key_frame(message.session, message.frame, message.cloud)
         elif isinstance(message, FramesRead):
@@ -373,13 +377,15 @@ class SlamPipeline:
         else:  # a programming error, not a data problem
             raise AssertionError(f"unknown message {message!r}")
 
-    def start_session(self, name: str) -> Session:
-        return self.state.start_session(name, log=self.reader.scene(name).log_token)
+    def start_session(self, name: str, continues: str | None = None) -> Session:
+        return self.state.start_session(
+            name, log=self.reader.scene(name).log_token, continues=continues
+        )
 
     def add_key_frame(self, session_name: str, inp: KeyFrameInput, cloud) -> KeyFrame:
         """A key frame of the session: a graph node, then loop closing, then iSAM2."""
         session = self.sessions[session_name]
-        kf = make_key_frame(session, inp, cloud)
+        kf = make_key_frame(session, inp, cloud, self.state.previous_key_frame(session))
         self.state.add(kf)
         self.timings.key_frames += 1
 
@@ -388,6 +394,10 @@ class SlamPipeline:
         elif kf.key.index == 0 and session.index == 0:
             self.groups[session.group].in_map = True
             self.insertion.insert_group(self.groups[session.group], anchor="prior")
+        elif kf.key.index == 0 and self.groups[session.group].in_map:
+            # a continued session of the map: its chain goes on from the one it continues
+            group = self.groups[session.group]
+            self.insertion.insert_session(session, group.from_session[session.name], "unknown")
 
         if self.recognizer is not None:
             self._close_loops(session, kf, cloud)

@@ -147,6 +147,7 @@ class PoseGraph:
         self._new_has_loop = False
         self._loops: list[_LoopRecord] = []
         self._odometry_edges: list[tuple[NodeKey, NodeKey, np.ndarray, np.ndarray]] = []
+        self._continuations: list[tuple[NodeKey, NodeKey]] = []
         self._isam = None
         if self.config.incremental:
             p = gtsam.ISAM2Params()
@@ -321,6 +322,30 @@ class PoseGraph:
         self._add_factor(factor)
         self._odometry_edges.append((ki, kj, rel, cov))
         return kj
+
+    def add_continuation(
+        self,
+        key_a: NodeKey,
+        key_b: NodeKey,
+        relative_pose: np.ndarray,
+        covariance_3x3: np.ndarray,
+    ) -> None:
+        """Odometry ``a_from_b`` from the last node of one session to the first of a session that
+        continues its drive (both nodes exist); the two sessions are one component."""
+        for key in (key_a, key_b):
+            if key not in self._known:
+                raise DataError(f"pose graph: continuation to missing node {key}")
+        if key_a.session == key_b.session:
+            raise DataError(f"pose graph: continuation {key_a}->{key_b} inside one session")
+        rel = _check_pose(relative_pose, f"continuation {key_a}->{key_b}")
+        cov = _check_matrix3(covariance_3x3, f"continuation {key_a}->{key_b} covariance")
+        self._add_factor(
+            self._between_factor(
+                self.gtsam_key(key_a), self.gtsam_key(key_b), rel, self._noise_from_covariance(cov)
+            )
+        )
+        self._odometry_edges.append((key_a, key_b, rel, cov))
+        self._continuations.append((key_a, key_b))
 
     def add_loop(
         self,
@@ -500,8 +525,9 @@ class PoseGraph:
         return out
 
     def components(self, inliers_only: bool = False) -> list[GraphComponent]:
-        """Groups of sessions joined by loop closures (union-find). With ``inliers_only`` only
-        loops that agree with the newest estimate count. Anchored component first."""
+        """Groups of sessions joined by loop closures or continuations (union-find). With
+        ``inliers_only`` only loops that agree with the newest estimate count. Anchored
+        component first."""
         parent = {s: s for s in self._sessions}
 
         def find(s: str) -> str:
@@ -511,10 +537,14 @@ class PoseGraph:
             return s
 
         residuals = self.loop_residuals() if inliers_only else None
-        for n, rec in enumerate(self._loops):
-            if residuals is not None and not residuals[n].inlier:
-                continue
-            a, b = find(rec.key_a.session), find(rec.key_b.session)
+        joins = [
+            (rec.key_a.session, rec.key_b.session)
+            for n, rec in enumerate(self._loops)
+            if residuals is None or residuals[n].inlier
+        ]
+        joins += [(ka.session, kb.session) for ka, kb in self._continuations]
+        for sa, sb in joins:
+            a, b = find(sa), find(sb)
             if a != b:
                 # keep the earlier-added session as the root: it names the component
                 if self._sessions[a] < self._sessions[b]:

@@ -35,6 +35,9 @@ class KeyFrame:
     ego_from_ref: np.ndarray
     relative: np.ndarray | None = None  # prev_ego_from_ego from the odometry
     relative_cov: np.ndarray | None = None
+    #: the previous key frame when it is another session's (a continued session's first key
+    #: frame): ``relative`` moves from it
+    follows: NodeKey | None = None
 
 
 @dataclass
@@ -73,6 +76,8 @@ class Session:
     timestamps_us: list[int] = field(default_factory=list)  # of the key frames, increasing
     #: the dataset log (one vehicle's one drive) the scene was cut from; "" when unknown
     log: str = ""
+    #: the session whose odometry this one continues (``SlamConfig.continue_log_scenes``)
+    continues: str | None = None
     _xy: np.ndarray = field(default_factory=lambda: np.zeros((64, 2)))  # grows by doubling
 
     def add_position(self, xy: np.ndarray) -> None:
@@ -86,13 +91,17 @@ class Session:
         return self._xy[: len(self.timestamps_us)]
 
 
-def make_key_frame(session: Session, inp, cloud: AccumulatedCloud) -> KeyFrame:
+def make_key_frame(
+    session: Session, inp, cloud: AccumulatedCloud, prev: KeyFrame | None = None
+) -> KeyFrame:
     """The session's next key frame from the feed's :class:`~radarslam.slam.feed.KeyFrameInput`
-    and its accumulated cloud."""
+    and its accumulated cloud. ``prev``: the key frame its odometry motion starts from (default:
+    the session's last; :meth:`MapState.previous_key_frame`)."""
     ego_from_ref = inp.ego_from_ref
     xy_ref = np.column_stack([cloud.points["x"], cloud.points["y"]])
     xy_ego = xy_ref @ ego_from_ref[:2, :2].T + ego_from_ref[:2, 3]
-    prev = session.key_frames[-1] if session.key_frames else None
+    if prev is None and session.key_frames:
+        prev = session.key_frames[-1]
     kf = KeyFrame(
         key=NodeKey(session.name, len(session.key_frames)),
         timestamp_us=inp.timestamp_us,
@@ -104,6 +113,8 @@ def make_key_frame(session: Session, inp, cloud: AccumulatedCloud) -> KeyFrame:
         ego_from_ref=ego_from_ref,
     )
     if prev is not None:
+        if prev.key.session != session.name:
+            kf.follows = prev.key
         if inp.motion is not None:
             kf.relative = inp.motion
             kf.relative_cov = inp.motion_cov
@@ -130,14 +141,30 @@ class MapState:
 
     # --- building --------------------------------------------------------------------------------
 
-    def start_session(self, name: str, log: str = "") -> Session:
-        """A new session in a group of its own."""
-        session = Session(name, len(self.sessions), log=log)
+    def start_session(self, name: str, log: str = "", continues: str | None = None) -> Session:
+        """A new session in a group of its own, or, when it ``continues`` an earlier session's
+        odometry, in that session's group, placed in the same odometry frame."""
+        if continues is not None and continues not in self.sessions:
+            raise ValueError(f"session {name!r} continues {continues!r}, which has not started")
+        session = Session(name, len(self.sessions), log=log, continues=continues)
         self.sessions[name] = session
-        group = Group(session.index, {name: np.eye(4)})  # unique: merges delete groups
-        self.groups[group.index] = group
+        if continues is not None:
+            group = self.groups[self.sessions[continues].group]
+            group.from_session[name] = group.from_session[continues].copy()
+        else:
+            group = Group(session.index, {name: np.eye(4)})  # unique: merges delete groups
+            self.groups[group.index] = group
         session.group = group.index
         return session
+
+    def previous_key_frame(self, session: Session) -> KeyFrame | None:
+        """The key frame the session's next key frame moves from: its last one, or, before its
+        first, the last key frame of the session it continues (None: it starts a chain)."""
+        if session.key_frames:
+            return session.key_frames[-1]
+        if session.continues is not None:
+            return self.previous_key_frame(self.sessions[session.continues])
+        return None
 
     def add(self, kf: KeyFrame) -> None:
         """Append ``kf`` to its session (it must be the session's next key frame)."""

@@ -180,3 +180,34 @@ def test_reset_folds_the_estimated_mounting_yaws_into_the_sweeps(tiny_dataroot, 
             assert np.arctan2(d[1, 0], d[0, 0]) == pytest.approx(before[RADAR_CHANNELS.index(ch)])
     else:
         assert odo._mounting == {}
+
+
+def test_a_fold_between_scenes_of_one_drive_keeps_the_pose(tiny_dataroot):
+    """``fold_calibration()`` applies the estimate to the sweeps as a reset would, but the drive
+    goes on: pose, key-frame interval and the reported estimate are kept."""
+    from radarslam.nuscenes.filters import RadarPointFilter
+    from radarslam.odometry.pipeline import RadarOdometry
+
+    cfg = OdometryConfig()
+    odo = RadarOdometry(cfg)
+    reader = NuScenesRadar(tiny_dataroot, "v1.0-mini")
+    pc = cfg.points
+    filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+    frames = list(reader.iter_frames(reader.scenes()[0], filters=filters))
+    for frame in frames[:-1]:
+        last = odo.process(frame)
+    from radarslam.types import RADAR_CHANNELS
+
+    states = np.array(odo.calibration.yaw_states)
+    assert np.abs(states).max() > np.radians(0.05)
+    assert odo._mounting == {}
+    odo.fold_calibration()
+    assert np.allclose(odo.calibration.yaw_states, states)  # the total, as after a reset
+    for i, ch in enumerate(RADAR_CHANNELS):  # now applied to the sweeps
+        assert np.arctan2(odo._mounting[ch][1, 0], odo._mounting[ch][0, 0]) == pytest.approx(
+            states[i]
+        )
+    res = odo.process(frames[-1])
+    assert res.status != "first"  # no reset: the drive went on from the last pose
+    step = invert(last.world_from_ego) @ res.world_from_ego
+    assert np.hypot(*step[:2, 3]) < 2.0

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -31,6 +33,9 @@ def _fake_odometry(sigmas: list[float]):
         def reset(self) -> None:
             self.scene += 1
 
+        def fold_calibration(self) -> None:
+            self.scene += 1
+
         def process(self, frame) -> None:
             self.calibration = _Calibration(sigmas[self.scene])
 
@@ -38,8 +43,14 @@ def _fake_odometry(sigmas: list[float]):
 
 
 class _Reader:
+    """One frame per scene; scenes ``gap_s`` apart (end of one to the start of the next)."""
+
+    def __init__(self, gap_s: float = 100.0):
+        self.gap_s = gap_s
+
     def iter_frames(self, info, filters=None):
-        yield info.name
+        k = int(info.name.split("-")[1])
+        yield SimpleNamespace(name=info.name, timestamp_us=round(k * self.gap_s * 1e6))
 
     def scene_extrinsics(self, info):
         return {}  # no rig: one car assumed
@@ -54,7 +65,8 @@ def _scenes(n: int, samples: int = 40) -> list[SceneInfo]:
 
 def _run(monkeypatch, sigmas, max_sigma_deg, n=None):
     monkeypatch.setattr(odometry_pipeline, "RadarOdometry", _fake_odometry(sigmas))
-    return estimate_calibration(_Reader(), _scenes(n or len(sigmas)), None, None, max_sigma_deg)
+    scenes = _scenes(n or len(sigmas))
+    return estimate_calibration(_Reader(), scenes, OdometryConfig(), None, max_sigma_deg)
 
 
 def test_the_pass_stops_once_below_the_limit(monkeypatch):
@@ -87,6 +99,33 @@ def test_without_a_limit_the_pass_runs_every_scene(monkeypatch):
     assert found.max_sigma_deg == pytest.approx(0.7)
 
 
+def test_the_pass_drives_on_through_a_log_cut_into_contiguous_scenes(monkeypatch):
+    """Scenes of one log that follow within the odometry's gap limit are one drive for the pass,
+    as for the run (``continue_log_scenes``): the odometry is reset once, not per scene."""
+    resets = []
+
+    class Counting(_fake_odometry([1.0] * 4)):  # type: ignore[misc]
+        def reset(self) -> None:
+            resets.append(1)
+            super().reset()
+
+        def process(self, frame) -> None:
+            self.calibration = _Calibration(1.0)
+
+    monkeypatch.setattr(odometry_pipeline, "RadarOdometry", Counting)
+    gap_s = 0.5 * OdometryConfig().fusion.max_gap_s
+    estimate_calibration(_Reader(gap_s), _scenes(4), OdometryConfig(), None, None)
+    assert len(resets) == 1
+    resets.clear()
+    estimate_calibration(
+        _Reader(gap_s), _scenes(4), OdometryConfig(), None, None, continue_log_scenes=False
+    )
+    assert len(resets) == 4
+    resets.clear()  # farther apart than the gap limit: each scene its own drive
+    estimate_calibration(_Reader(10.0), _scenes(4), OdometryConfig(), None, None)
+    assert len(resets) == 4
+
+
 def test_no_pass_over_scenes_of_several_cars(real_dataroot):
     """One set of mounting yaws cannot serve two cars: over a Boston and a Singapore scene the
     pass does not run and says why (``rigs``)."""
@@ -96,3 +135,23 @@ def test_no_pass_over_scenes_of_several_cars(real_dataroot):
     assert count_rigs(reader, [infos[0], reader.scene("scene-0655")]) == 1
     found = estimate_calibration(reader, infos, OdometryConfig(), None, 0.1)
     assert found.rigs == 2 and found.scenes_used == 0 and not found.converged
+
+
+@pytest.mark.parametrize(
+    ("log", "gap_s", "continues"),
+    [("log", 0.3, True), ("log", 1.0, True), ("log", 1.2, False), ("other", 0.3, False)],
+)
+def test_a_scene_drives_on_from_the_scene_before_it(log, gap_s, continues):
+    """Same log and within the gap limit (1 s here) of the previous scene's last frame."""
+    from radarslam.slam.feed import drives_on
+
+    before, after = _scenes(2)
+    after = SceneInfo(after.name, after.token, log, "city", "2026-01-01", "car", 40, "a", "b")
+    first = SimpleNamespace(timestamp_us=5_000_000 + round(gap_s * 1e6))
+    assert drives_on(after, (before, 5_000_000), first, 1e6) is continues
+    assert not drives_on(after, None, first, 1e6)  # nothing before it (or without frames)
+    assert not drives_on(after, (before, 5_000_000), None, 1e6)  # no frame of its own
+    earlier = SimpleNamespace(timestamp_us=4_000_000)  # before the other's end: not its sequel
+    assert not drives_on(after, (before, 5_000_000), earlier, 1e6)
+    nolog = SceneInfo(after.name, after.token, "", "city", "2026-01-01", "car", 40, "a", "b")
+    assert not drives_on(nolog, (_scenes(1)[0], 5_000_000), first, 1e6)

@@ -239,3 +239,48 @@ def test_redescending_final_pass_removes_the_pull_of_far_false_loops():
         )
     assert abs(ratio["none"] - 1.0) > 0.03, ratio
     assert abs(ratio["geman_mcclure"] - 1.0) < 0.002, ratio
+
+
+def test_a_continuation_chains_one_drive_cut_into_two_sessions(clean):
+    """The second half of a drive, continued from the first half's last node by the odometry's
+    motion, comes out exactly where one chain would put it, and both are one component. (Its
+    weak prior sits at the chain's guess, as GraphInsertion places it.)"""
+    n = 50
+    pg = PoseGraph()
+    pg.add_session("a", clean.gt[0], anchor="prior")
+    for k in range(n - 1):
+        pg.add_odometry("a", k, k + 1, clean.odometry[k], clean.odometry_covariance)
+    guess = pg.current_pose(NodeKey("a", n - 1)) @ clean.odometry[n - 1]
+    pg.add_session("b", guess, anchor="unknown")
+    for k in range(n, 2 * n - 1):
+        pg.add_odometry("b", k - n, k - n + 1, clean.odometry[k], clean.odometry_covariance)
+    assert len(pg.components()) == 2
+    pg.add_continuation(
+        NodeKey("a", n - 1), NodeKey("b", 0), clean.odometry[n - 1], clean.odometry_covariance
+    )
+    pg.update()
+    pg.optimize_batch()
+    assert [c.sessions for c in pg.components()] == [("a", "b")]
+    np.testing.assert_allclose(pg.session_poses("b"), clean.dead_reckoning[n : 2 * n], atol=1e-4)
+    # a loop that moves the first half's end (by a metre) carries the second half along with it
+    a_end = NodeKey("a", n - 1)
+    rel = invert(clean.dead_reckoning[0]) @ clean.dead_reckoning[n - 1] @ se2_to_matrix(1, 0, 0)
+    pg.add_loop(NodeKey("a", 0), a_end, rel, 1e4 * np.eye(3), robust="none")
+    pg.optimize_batch()
+    moved = pg.current_pose(a_end)
+    assert np.linalg.norm(moved[:2, 3] - clean.dead_reckoning[n - 1][:2, 3]) > 0.5
+    b0 = pg.current_pose(NodeKey("b", 0))
+    np.testing.assert_allclose(b0, moved @ clean.odometry[n - 1], atol=0.05)
+
+
+def test_a_continuation_needs_two_existing_nodes_of_two_sessions(clean):
+    pg = PoseGraph()
+    pg.add_session("a", clean.gt[0], anchor="prior")
+    pg.add_odometry("a", 0, 1, clean.odometry[0], clean.odometry_covariance)
+    with pytest.raises(DataError, match="continuation to missing node"):
+        pg.add_continuation(NodeKey("a", 1), NodeKey("b", 0), np.eye(4), np.eye(3))
+    with pytest.raises(DataError, match="inside one session"):
+        pg.add_continuation(NodeKey("a", 0), NodeKey("a", 1), np.eye(4), np.eye(3))
+    pg.add_session("b", clean.gt[5], anchor="unknown")
+    with pytest.raises(DataError, match="covariance"):
+        pg.add_continuation(NodeKey("a", 1), NodeKey("b", 0), np.eye(4), np.full((3, 3), np.nan))

@@ -1039,3 +1039,35 @@ def test_a_place_is_queried_again_only_after_the_car_moved(reader, scenes, trave
         assert len(scenes) < expected < every
     else:
         assert expected == len(scenes)  # each session's first key frame only
+
+
+@pytest.mark.parametrize("continue_log_scenes", [True, False])
+def test_contiguous_scenes_of_one_log_are_one_chain(sim_dataroot, continue_log_scenes):
+    """A log cut into scenes 0.2-0.4 s apart: each scene continues the one before it, so all
+    three are one component placed by odometry alone (no loop), near the ground truth; each
+    later session's first key frame follows the previous session's last. Without
+    ``continue_log_scenes`` each scene is its own chain and, with no loop, its own component."""
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    root = sim_dataroot(["schedule.scenes_per_log=3", "schedule.scene_gap_s=[0.2, 0.4]"])
+    reader = NuScenesRadar(root, "v1.0-mini")
+    names = [s.name for s in reader.scenes()]
+    cfg = SlamConfig()
+    cfg.loops.enabled = False
+    cfg.continue_log_scenes = continue_log_scenes
+    pipeline = SlamPipeline(reader, cfg, progress=False)
+    res = pipeline.run(names)
+    if not continue_log_scenes:
+        assert len(res.components) == 3
+        assert all(pipeline.sessions[n].continues is None for n in names)
+        return
+    assert [c.sessions for c in res.components] == [tuple(names)]
+    for before, after in pairwise(names):
+        session = pipeline.sessions[after]
+        assert session.continues == before
+        assert session.group == pipeline.sessions[before].group
+        first = session.key_frames[0]
+        assert first.follows == pipeline.sessions[before].key_frames[-1].key
+    for s in res.sessions:
+        err = np.linalg.norm(s.slam_poses[:, :2, 3] - s.gt_poses[:, :2, 3], axis=1)
+        assert err.max() < 2.0, (s.name, err.max())  # odometry drift over the 27 s drive
