@@ -296,6 +296,7 @@ def main() -> None:
         result.static_map,
         plots=True,
         components=[c.sessions for c in result.components],
+        continues=result.continues,
     )
     report = evaluate_results(args.out, load_config(EvalConfig, CONFIG_DIR / "eval/default.yaml"))
     loops = report.loops.as_dict() if report.loops is not None else {}

@@ -237,6 +237,7 @@ def evaluate_results(
             cfg.loops,
             folder.sessions,
             labels=[f"{folder.loops_path}:{line}" for line, _ in numbered],
+            continues=folder.continues,
         )
     report = EvalReport(
         results_dir=folder.path if name is None else Path(name),

@@ -5,14 +5,15 @@
   Precision = correct / accepted.
 - A key frame is a **GT revisit query** when some key frame processed before it lies within
   ``revisit_radius_m`` (planar ground truth), excluding the recent past of its own pass: frames of
-  the same session less than ``exclude_recent_s`` older. Sessions are processed in the given order
+  the same session, or of the sessions its drive continues (``continues``, from ``run.json``),
+  less than ``exclude_recent_s`` older. Sessions are processed in the given order
   (default: by first timestamp). Recall = revisit queries with >= 1 correct accepted loop / all
   revisit queries.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -112,10 +113,26 @@ def judge_loop(
     return LoopJudgement(loop, t_err, r_err, float(np.hypot(*gt_rel[:2])), bool(ok))
 
 
+def passes(sessions: Sequence[str], continues: Mapping[str, str] | None) -> dict[str, str]:
+    """session -> its pass: the first session of the drive it continues (itself if none)."""
+    cont = dict(continues or {})
+    out = {}
+    for s in sessions:
+        root, seen = s, {s}
+        while root in cont:
+            root = cont[root]
+            if root in seen:
+                raise DataError(f"loop evaluation: 'continues' loops back through {root!r}")
+            seen.add(root)
+        out[s] = root
+    return out
+
+
 def gt_revisit_queries(
     gt: dict[str, SessionGroundTruth],
     config: LoopEvalConfig,
     session_order: Sequence[str] | None = None,
+    continues: Mapping[str, str] | None = None,
 ) -> set[NodeKey]:
     """Key frames that revisit a place seen earlier (see module docstring)."""
     from scipy.spatial import cKDTree
@@ -124,8 +141,10 @@ def gt_revisit_queries(
     missing = [s for s in order if s not in gt]
     if missing:
         raise DataError(f"loop evaluation: sessions {missing} have no ground truth")
+    pass_of = passes(order, continues)
+    pass_id = {p: i for i, p in enumerate(dict.fromkeys(pass_of.values()))}
     keys: list[NodeKey] = []
-    xy, t, rank = [], [], []
+    xy, t, rank, drive = [], [], [], []
     for r, s in enumerate(order):
         g = gt[s]
         p = to_xy_yaw(g.poses, f"ground truth of {s}")
@@ -133,9 +152,11 @@ def gt_revisit_queries(
         xy.append(p[:, :2])
         t.append(np.asarray(g.timestamps_us, dtype=np.int64))
         rank.append(np.full(len(p), r))
+        drive.append(np.full(len(p), pass_id[pass_of[s]]))
     if not keys:
         return set()
     xy_all, t_all, rank_all = np.concatenate(xy), np.concatenate(t), np.concatenate(rank)
+    drive_all = np.concatenate(drive)
     tree = cKDTree(xy_all)
     exclude_us = round(config.exclude_recent_s * 1e6)
     out = set()
@@ -143,8 +164,9 @@ def gt_revisit_queries(
         near = np.asarray(near, dtype=np.int64)
         if near.size == 0:
             continue
-        earlier_session = rank_all[near] < rank_all[n]
-        same_old = (rank_all[near] == rank_all[n]) & (t_all[near] < t_all[n] - exclude_us)
+        same_pass = drive_all[near] == drive_all[n]
+        earlier_session = ~same_pass & (rank_all[near] < rank_all[n])
+        same_old = same_pass & (t_all[near] < t_all[n] - exclude_us)
         if np.any(earlier_session | same_old):
             out.add(keys[n])
     return out
@@ -164,8 +186,10 @@ def evaluate_loops(
     config: LoopEvalConfig | None = None,
     session_order: Sequence[str] | None = None,
     labels: Sequence[str] | None = None,
+    continues: Mapping[str, str] | None = None,
 ) -> LoopMetrics:
-    """``labels[i]`` names where loop ``i`` came from (``path:line``) in error messages."""
+    """``labels[i]`` names where loop ``i`` came from (``path:line``) in error messages;
+    ``continues``: session -> the session whose drive it continues (one pass)."""
     config = config or LoopEvalConfig()
     lookup = _Lookup(gt)
     if labels is not None and len(labels) != len(loops):
@@ -176,7 +200,7 @@ def evaluate_loops(
     ]
     accepted = [j for j in judgements if j.loop.accepted]
     correct = [j for j in accepted if j.correct]
-    revisits = gt_revisit_queries(gt, config, session_order)
+    revisits = gt_revisit_queries(gt, config, session_order, continues)
     recalled = {j.loop.query for j in correct} & revisits
     return LoopMetrics(
         num_candidates=len(judgements),

@@ -14,7 +14,7 @@ import json
 import logging
 import re
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -103,6 +103,7 @@ def write_results_folder(
     *,
     method: str | None = None,
     components: Sequence[Sequence[str]] | None = None,
+    continues: Mapping[str, str] | None = None,
     extra_json: Mapping[str, object] | None = None,
     finish: Callable[[Path], None] | None = None,
 ) -> Path:
@@ -126,6 +127,8 @@ def write_results_folder(
             run["method"] = method
         if components is not None:  # the anchored map first; the others live in their own frames
             run["components"] = [list(c) for c in components]
+        if continues:  # session -> the one whose drive it continues: one pass for the metrics
+            run["continues"] = dict(continues)
         write_json_atomic(tmp / "run.json", run)
         for name, obj in (extra_json or {}).items():
             write_json_atomic(tmp / name, obj)
@@ -149,6 +152,8 @@ class ResultsFolder:
     kind: str = "slam"
     #: The odometry method of an odometry folder, when recorded.
     method: str | None = None
+    #: session -> the session whose drive it continues (one pass of the vehicle), from run.json.
+    continues: dict[str, str] = field(default_factory=dict)
 
 
 def read_results(results_dir: str | Path) -> ResultsFolder:
@@ -228,6 +233,7 @@ def read_results(results_dir: str | Path) -> ResultsFolder:
         _components(run, meta, sessions),
         kind,
         method,
+        _continues(run, meta, sessions),
     )
 
 
@@ -255,6 +261,29 @@ def _read_run_json(run: Path) -> dict:
     if not isinstance(meta, dict):
         raise DataError(f"{run}: not a JSON object with a 'sessions' list")
     return meta
+
+
+def _continues(run: Path, meta: dict, sessions: list[str]) -> dict[str, str]:
+    cont = meta.get("continues", {})
+    if not isinstance(cont, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in cont.items()
+    ):
+        raise DataError(f"{run}: 'continues' must map session names to session names")
+    order = {s: i for i, s in enumerate(sessions)}
+    for later, earlier in cont.items():
+        if later not in order or earlier not in order:
+            raise DataError(
+                f"{run}: 'continues' names {later!r} -> {earlier!r}, not both among its sessions"
+            )
+        if order[earlier] >= order[later]:
+            raise DataError(
+                f"{run}: 'continues': {later!r} continues {earlier!r}, which is not listed "
+                "before it"
+            )
+    doubled = [v for v in set(cont.values()) if list(cont.values()).count(v) > 1]
+    if doubled:
+        raise DataError(f"{run}: 'continues': two sessions continue {doubled[0]!r}")
+    return dict(cont)
 
 
 def _components(run: Path, meta: dict, sessions: list[str]) -> list[list[str]] | None:

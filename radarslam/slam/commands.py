@@ -175,6 +175,7 @@ def run_slam(
         components=[c.sessions for c in result.components],  # the anchored map first
         extra_json={"timing.json": timing, **_summary(result)},
         finish=finish,
+        continues=result.continues,
     )
     if reports:
         from radarslam.eval.commands import print_report

@@ -84,6 +84,7 @@ def write_results(
     components: Sequence[Sequence[str]] | None = None,
     extra_json: Mapping[str, object] | None = None,
     finish: Callable[[Path], None] | None = None,
+    continues: Mapping[str, str] | None = None,
 ) -> Path:
     """Write everything a run produced; ``radarslam eval`` reads it back.
 
@@ -103,6 +104,7 @@ def write_results(
         "slam",
         contents,
         components=components,
+        continues=continues,
         extra_json=extra_json,
         finish=finish,
     )

@@ -53,6 +53,8 @@ class SlamResult:
     doppler_calibration: dict | None = None
     #: Every radar rig's calibration when the scenes come from several vehicles (else empty).
     doppler_calibrations_by_rig: list[dict] = field(default_factory=list)
+    #: session -> the session whose drive it continues (``SlamConfig.continue_log_scenes``)
+    continues: dict[str, str] = field(default_factory=dict)
 
     @property
     def accepted_loops(self) -> list[LoopCandidate]:
@@ -103,4 +105,5 @@ def assemble_result(
         graph=graph,
         doppler_calibration=doppler_calibration,
         doppler_calibrations_by_rig=list(doppler_calibrations_by_rig or []),
+        continues={s.name: s.continues for s in state.sessions.values() if s.continues is not None},
     )

@@ -78,6 +78,8 @@ class Session:
     log: str = ""
     #: the session whose odometry this one continues (``SlamConfig.continue_log_scenes``)
     continues: str | None = None
+    #: the first session of the drive it belongs to (itself unless it continues one): a pass
+    drive: str = ""
     _xy: np.ndarray = field(default_factory=lambda: np.zeros((64, 2)))  # grows by doubling
 
     def add_position(self, xy: np.ndarray) -> None:
@@ -147,6 +149,7 @@ class MapState:
         if continues is not None and continues not in self.sessions:
             raise ValueError(f"session {name!r} continues {continues!r}, which has not started")
         session = Session(name, len(self.sessions), log=log, continues=continues)
+        session.drive = self.sessions[continues].drive if continues is not None else name
         self.sessions[name] = session
         if continues is not None:
             group = self.groups[self.sessions[continues].group]
@@ -201,7 +204,8 @@ class MapState:
     ) -> list[tuple[float, KeyFrame]]:
         """(distance, key frame) of the group's key frames within ``proximity_radius_m`` of
         ``xy`` (group frame, key frames placed by link @ odometry), nearest first, at most one
-        per session (of the sessions ``among``, if given; ``recent_of``'s recent past left out)."""
+        per session (of the sessions ``among``, if given; ``recent_of``'s recent past left out,
+        in its session and those of its drive)."""
         cfg = self.config.loops
         found: list[tuple[float, KeyFrame]] = []
         for name, group_from_session in group.from_session.items():
@@ -209,7 +213,7 @@ class MapState:
                 continue
             other = self.sessions[name]
             pos = other.positions()
-            if recent_of is not None and name == recent_of.key.session:
+            if recent_of is not None and other.drive == self.sessions[recent_of.key.session].drive:
                 recent_us = recent_of.timestamp_us - cfg.exclude_recent_s * 1e6
                 pos = pos[: bisect.bisect_left(other.timestamps_us, recent_us)]
             if not len(pos):
@@ -223,11 +227,13 @@ class MapState:
         return found
 
     def excluded(self, kf: KeyFrame) -> Callable[[NodeKey], bool]:
-        """Keys a query may not return: the recent past of its own pass."""
+        """Keys a query may not return: the recent past of its own pass (its session and the
+        sessions whose drive it continues)."""
         recent_us = self.config.loops.exclude_recent_s * 1e6
+        drive = self.sessions[kf.key.session].drive
 
         def skip(key: NodeKey) -> bool:
-            if key.session != kf.key.session:
+            if self.sessions[key.session].drive != drive:
                 return False
             return kf.timestamp_us - self._kf_by_key[key].timestamp_us < recent_us
 

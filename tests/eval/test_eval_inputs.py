@@ -15,6 +15,7 @@ from radarslam.errors import ConfigError, DataError
 from radarslam.eval.evaluate import EvalConfig, evaluate_results
 from radarslam.geometry import se2_to_matrix
 from radarslam.io.loops import LoopCandidate, NodeKey
+from radarslam.io.results import read_results
 from radarslam.slam.outputs import SessionResult, write_results
 
 T0 = 1_600_000_000_000_000
@@ -63,6 +64,27 @@ def test_run_json_that_is_binary_or_has_empty_components(tmp_path):
     run.write_text(json.dumps({**meta, "components": [[], ["scene-a", "scene-b"]]}))
     with pytest.raises(DataError, match=r"run\.json: 'components'"):
         evaluate_results(tmp_path, _cfg())
+
+
+@pytest.mark.parametrize(
+    ("continues", "message"),
+    [
+        (["scene-b"], "'continues' must map session names to session names"),
+        ({"scene-b": "scene-x"}, "'continues' names 'scene-b' -> 'scene-x', not both among"),
+        ({"scene-a": "scene-b"}, "'continues': 'scene-a' continues 'scene-b', which is not listed"),
+    ],
+)
+def test_run_json_continues_names_earlier_sessions(tmp_path, continues, message):
+    _write(tmp_path)
+    run = tmp_path / "run.json"
+    meta = json.loads(run.read_text())
+    assert meta["sessions"] == ["scene-a", "scene-b"]
+    run.write_text(json.dumps({**meta, "continues": continues}))
+    with pytest.raises(DataError, match=re.escape(f"{run}: {message}")):
+        evaluate_results(tmp_path, _cfg())
+    run.write_text(json.dumps({**meta, "continues": {"scene-b": "scene-a"}}))
+    assert read_results(tmp_path).continues == {"scene-b": "scene-a"}
+    assert evaluate_results(tmp_path, _cfg()).loops is not None
 
 
 def test_missing_slam_poses_of_a_listed_session_names_the_file(tmp_path):

@@ -86,3 +86,26 @@ def test_second_session_revisits_the_first_and_errors():
     )
     m = evaluate_loops([ok], gt, cfg)
     assert m.precision == 1.0 and m.recall == pytest.approx(0.1)
+
+
+def test_a_session_that_continues_a_drive_is_one_pass_with_it():
+    """A drive cut into two sessions, standing still across the cut: the second session's first
+    key frames are where the first one ended seconds ago, the recent past of the same pass, not
+    a revisit; once they are ``exclude_recent_s`` older they are."""
+    xy = np.zeros((10, 3))  # a car at a red light, both sessions at x = 0
+    ts_a = np.arange(10, dtype=np.int64) * 1_000_000
+    ts_b = ts_a + 10_000_000
+    gt = {"a": SessionGroundTruth(ts_a, xy), "b": SessionGroundTruth(ts_b, xy)}
+    cfg = LoopEvalConfig(revisit_radius_m=1.0, exclude_recent_s=15.0)
+    # two sessions: every key frame of b revisits a
+    assert gt_revisit_queries(gt, cfg, ["a", "b"]) == {NodeKey("b", k) for k in range(10)}
+    # one pass: only key frames more than 15 s after the pass's first frames revisit them
+    one = gt_revisit_queries(gt, cfg, ["a", "b"], continues={"b": "a"})
+    assert one == {NodeKey("b", k) for k in range(6, 10)}
+    # the pass reaches back through a chain of sessions
+    ts_c = ts_b + 10_000_000
+    gt["c"] = SessionGroundTruth(ts_c, xy)
+    chain = gt_revisit_queries(gt, cfg, ["a", "b", "c"], continues={"b": "a", "c": "b"})
+    assert NodeKey("c", 0) in chain and NodeKey("b", 5) not in chain
+    with pytest.raises(DataError, match="loops back"):
+        gt_revisit_queries(gt, cfg, ["a", "b"], continues={"b": "a", "a": "b"})

@@ -1067,7 +1067,11 @@ def test_contiguous_scenes_of_one_log_are_one_chain(sim_dataroot, continue_log_s
         assert session.continues == before
         assert session.group == pipeline.sessions[before].group
         first = session.key_frames[0]
-        assert first.follows == pipeline.sessions[before].key_frames[-1].key
+        last_before = pipeline.sessions[before].key_frames[-1]
+        assert first.follows == last_before.key
+        # one pass: where the other scene ended is the query's recent past, not a place to find
+        assert pipeline.state.excluded(first)(last_before.key)
+    assert res.continues == dict(zip(names[1:], names[:-1], strict=True))
     for s in res.sessions:
         err = np.linalg.norm(s.slam_poses[:, :2, 3] - s.gt_poses[:, :2, 3], axis=1)
         assert err.max() < 2.0, (s.name, err.max())  # odometry drift over the 27 s drive
