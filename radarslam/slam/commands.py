@@ -144,6 +144,12 @@ def run_slam(
         f"{result.duration_s:.0f} s of radar in {wall_s:.1f} s "
         f"({timing['real_time_factor']:.1f}x real time)"
     )
+    if result.continues:
+        drives = len(infos) - len(result.continues)
+        console.print(
+            f"{len(result.continues)} scene(s) continue the scene before them (same log, "
+            f"back to back): {drives} drive(s)"
+        )
     calibration = result.doppler_calibration or {}
     mounting = calibration.get("mounting_yaw_error_deg")
     if mounting:

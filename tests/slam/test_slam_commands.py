@@ -35,6 +35,26 @@ def test_run_odometry_only_writes_and_evaluates_a_results_folder(tiny_dataroot, 
     assert "estimated radar mounting-yaw errors (deg): FRONT" in result.output
 
 
+def test_run_over_a_drive_cut_into_scenes_reports_one_drive(sim_dataroot, tmp_path):
+    """Two scenes of one log 0.2-0.4 s apart: the second continues the first (run.json
+    ``continues``), one component, and the run says so."""
+    root = sim_dataroot(["schedule.scene_gap_s=[0.2, 0.4]"])
+    out = tmp_path / "res"
+    result = CliRunner().invoke(
+        app,
+        ["run", "--dataroot", str(root), "--version", "v1.0-mini", "--out", str(out),
+         "--no-loops", "--no-progress"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    run = json.loads((out / "run.json").read_text())
+    first, second = run["sessions"]
+    assert run["continues"] == {second: first}
+    assert run["components"] == [[first, second]]
+    assert "1 scene(s) continue the scene before them (same log, back to back): 1 drive(s)" in (
+        result.output
+    )
+
+
 def test_run_over_two_cars_reports_each_rigs_calibration(real_dataroot, tmp_path):
     """A Boston and a Singapore scene: each car's mounting estimate, with its scenes, and the
     calibration pass (SLAM's preset) skipped with a warning rather than applied across cars."""
