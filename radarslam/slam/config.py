@@ -90,12 +90,6 @@ class LoopDetectionConfig(StrictModel):
     #: is single returns, a reflector's are repeated. Global registrations and confirmations
     #: keep every point (their thresholds were set with the clutter in).
     proximity_min_neighbors: int | None = Field(2, ge=0)
-    #: Proximity registrations with a smaller constraint ratio (LoopVerifierConfig: how well the
-    #: matched structure pins the pose in its weakest direction) are rejected; a straight
-    #: street lets ICP slide along it. None: the verifier's ``min_constraint_ratio``. At 0.5 the
-    #: benchmark reaches precision 1.000 (recall 0.943 -> 0.894), but seed 7, whose correct
-    #: proximity loops are often ill conditioned, falls to recall 0.367 and SLAM ATE 3.6 m.
-    proximity_min_constraint_ratio: float | None = Field(None, ge=0.0, le=1.0)
     #: Between two sessions already in the map, a verified loop that moves the query farther than
     #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
     map_consistency_m: float = Field(3.0, gt=0.0)
@@ -131,12 +125,6 @@ class LoopDetectionConfig(StrictModel):
     link_min_consistent_loops: int = Field(2, ge=1)
     link_consistency_m: float = Field(1.5, gt=0.0)
     link_consistency_deg: float = Field(10.0, gt=0.0)
-    #: Agreeing votes count as independent only when their key frames lie this far apart on
-    #: at least one side: a vehicle standing at a light queries the same view again and again,
-    #: and a look-alike place then returns the same wrong match, consistent with itself.
-    #: 0: off. At 10 m the demo links 1 of its 5 other sessions (recall 0.27 against 0.84): its
-    #: true link votes come from nearby key frames too.
-    link_vote_spacing_m: float = Field(0.0, ge=0.0)
     #: At least one of a link's votes must be this well conditioned (constraint ratio, see
     #: LoopVerifierConfig.min_constraint_ratio): registrations that can slide along a straight
     #: street agree with each other when they slide together, hundreds of metres off.

@@ -117,40 +117,20 @@ class SessionLinker:
             dyaw = abs(se2_distance(t_i, t_j)[1])
             return moved <= cfg.link_consistency_m and dyaw <= cfg.link_consistency_deg
 
-        # Each vote's key frame on side b, in b's frame: with ``at`` (side a), where it looked.
-        at_b = [state.pose_in_group(self._side(v, b))[:2, 3] for v in votes]
-
-        def independent(agree: list[int]) -> list[int]:
-            """The agreeing votes that saw distinct places: a vote counts only if, against every
-            vote counted before it, its key frame lies ``link_vote_spacing_m`` away on at least
-            one side."""
-            counted: list[int] = []
-            for j in agree:
-                if all(
-                    max(np.hypot(*(at[j] - at[k])), np.hypot(*(at_b[j] - at_b[k])))
-                    >= cfg.link_vote_spacing_m
-                    for k in counted
-                ):
-                    counted.append(j)
-            return counted
-
         best: list[int] = []
         best_count = 0
         b_from_a = np.eye(4)
         for i in range(len(votes)):
             agree = [j for j in range(len(votes)) if agree_on(i, j)]
-            count = len(independent(agree))
+            count = len(agree)
             if count <= best_count:
                 continue
             placement = se2_mean([placements[j] for j in agree])  # each vote errs on its own
             if self._drivable(a, b, placement):
                 best, best_count, b_from_a = agree, count, placement
-        counted = independent(best)
-        if len(counted) < cfg.link_min_consistent_loops:
+        if len(best) < cfg.link_min_consistent_loops:
             return
-        if not any(
-            votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio for j in counted
-        ):
+        if not any(votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio for j in best):
             return
         agreeing = {id(votes[j]) for j in best}
         links = []

@@ -65,10 +65,6 @@ class Verifiers:
             proximity = proximity.model_copy(
                 update={"min_neighbors": cfg.loops.proximity_min_neighbors}
             )
-        if cfg.loops.proximity_min_constraint_ratio is not None:
-            proximity = proximity.model_copy(
-                update={"min_constraint_ratio": cfg.loops.proximity_min_constraint_ratio}
-            )
         # Turned-image candidates come with a rough relative heading (half a turn) but no
         # position: the global translation search, over headings near 180 deg only.
         turned = lv.model_copy(

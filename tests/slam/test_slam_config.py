@@ -35,18 +35,3 @@ def test_candidate_map_and_proximity_persistence_are_checked():
         load_config(SlamConfig, None, ["loops.proximity_min_neighbors=-1"])
     off = load_config(SlamConfig, None, ["loops.proximity_min_neighbors=null"])
     assert off.loops.proximity_min_neighbors is None
-
-
-def test_proximity_constraint_ratio_applies_to_proximity_registrations_only():
-    from radarslam.slam.verification import Verifiers
-
-    default = Verifiers.from_config(load_config(SlamConfig, None, []))
-    assert default.proximity.config.min_constraint_ratio == 0.0
-    cfg = load_config(SlamConfig, None, ["loops.proximity_min_constraint_ratio=0.4"])
-    v = Verifiers.from_config(cfg)
-    assert v.proximity.config.min_constraint_ratio == 0.4
-    # global searches keep the verifier's own setting
-    for other in (v.recognition, v.guided, v.turned):
-        assert other.config.min_constraint_ratio == 0.0
-    with pytest.raises(ConfigError, match=r"loops.proximity_min_constraint_ratio"):
-        load_config(SlamConfig, None, ["loops.proximity_min_constraint_ratio=2"])

@@ -192,23 +192,6 @@ def test_session_joins_the_map_once_loops_agree(reader):
     assert err.max() < 1.0, "the linked session lies on its ground truth"
 
 
-def test_votes_from_one_place_do_not_link_a_session(reader):
-    """Three consecutive key frames of the second session, a few metres apart, all matched to
-    the first session's last key frame: one view seen three times, not three votes. With the
-    spacing the session is linked only once votes come from places apart (here never), without
-    it at once."""
-
-    def accept(pipeline, q, c):
-        return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 2) else None
-
-    pipeline = _scripted_pipeline(reader, accept, link_vote_spacing_m=1000.0)
-    res = pipeline.run([s.name for s in reader.scenes()])
-    assert len(res.components) == 2
-    assert not [lp for lp in res.loops if lp.accepted and lp.query.session != lp.candidate.session]
-    res = _scripted_pipeline(reader, accept).run([s.name for s in reader.scenes()])
-    assert len(res.components) == 1
-
-
 @pytest.mark.parametrize(("ratio", "linked"), [(0.65, False), (0.9, True)])
 def test_a_link_needs_one_well_conditioned_vote(reader, ratio, linked):
     """Agreeing votes that could all slide along a straight street (constraint ratio 0.65)
