@@ -115,9 +115,10 @@ def test_without_prctl_a_helper_notices_its_parent_is_gone():
         child = os.fork()
         if child == 0:  # the parent-to-be-killed: starts a helper, then dies
             try:
+                parent = os.getpid()  # not the helper's getppid(): the parent may be gone by then
                 helper = os.fork()
                 if helper == 0:
-                    feed.die_with_parent(os.getppid(), pdeathsig=False)
+                    feed.die_with_parent(parent, pdeathsig=False)
                     time.sleep(30)
                     os._exit(0)
                 os.write(w, str(helper).encode())
