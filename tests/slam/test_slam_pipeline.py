@@ -1058,3 +1058,36 @@ def test_contiguous_scenes_of_one_log_are_one_chain(sim_dataroot, continue_log_s
     for s in res.sessions:
         err = np.linalg.norm(s.slam_poses[:, :2, 3] - s.gt_poses[:, :2, 3], axis=1)
         assert err.max() < 2.0, (s.name, err.max())  # odometry drift over the 27 s drive
+
+
+@pytest.mark.parametrize("voter", [0, 1])
+def test_a_continued_session_outside_the_map_enters_it_through_its_chain(sim_dataroot, voter):
+    """Log 1's first scene is the map; log 2's two scenes, back to back, are one chain outside
+    it. Votes from one of log 2's scenes link that chain (from the first: the second enters the
+    map as it goes; from the second: both enter at the merge, the first one first): the second
+    scene is tied to the first one's last key frame, every scene near its ground truth, in one
+    component."""
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    root = sim_dataroot(["schedule.n_logs=2", "schedule.scene_gap_s=[0.2, 0.4]"])
+    reader = NuScenesRadar(root, "v1.0-mini")
+    infos = reader.scenes()
+    logs = list(dict.fromkeys(i.log_token for i in infos))
+    assert len(infos) == 4 and len(logs) == 2
+    first = next(i.name for i in infos if i.log_token == logs[0])
+    a, b = (i.name for i in infos if i.log_token == logs[1])
+    voting = (a, b)[voter]
+
+    def accept(pipeline, q, c):  # only one of log 2's scenes matches the map
+        return _true_pose(pipeline, q, c) if (q.session, c.session) == (voting, first) else None
+
+    pipeline = _scripted_pipeline(reader, accept, unlinked_candidates_per_key_frame=50)
+    res = pipeline.run([first, a, b])
+    assert pipeline.sessions[b].continues == a
+    assert [c.sessions for c in res.components] == [(first, a, b)]
+    assert pipeline.sessions[b].key_frames[0].follows == pipeline.sessions[a].key_frames[-1].key
+    votes = [lp for lp in res.accepted_loops if lp.source == "recognition"]
+    assert len(votes) >= 2 and {lp.query.session for lp in votes} == {voting}
+    for s in res.sessions:
+        err = np.linalg.norm(s.slam_poses[:, :2, 3] - s.gt_poses[:, :2, 3], axis=1)
+        assert err.max() < 2.0, (s.name, err.max())
