@@ -158,7 +158,8 @@ class SlamConfig(StrictModel):
     #: processed just before it, cut from the same log (one drive), continues that scene's
     #: odometry instead of starting unknown: the vehicle drove on through the gap, so the two
     #: sessions are one chain in the pose graph, tied by the odometry's key-frame motion across
-    #: the gap. False: every scene is its own chain, placed only by loops.
+    #: the gap. Consecutive nuScenes scenes may share their boundary key frame; it is driven
+    #: once. False: every scene is its own chain, placed only by loops.
     continue_log_scenes: bool = True
     #: With ``odometry.fusion.calibration.passes: 2`` the odometry first runs over the scenes,
     #: in order, to estimate the vehicle's mounting yaws; it stops after the scene at which every

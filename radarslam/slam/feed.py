@@ -16,7 +16,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -145,11 +145,20 @@ TIMING_FIELDS = ("data_s", "odometry_s", "key_frame_s", "frames")
 def drives_on(info: SceneInfo, previous: tuple[SceneInfo, int] | None, first, max_gap_us) -> bool:
     """Whether the scene ``info``, whose first frame is ``first`` (None: it has none), continues
     the drive of ``previous`` (the scene read just before it, with its last frame's time): cut
-    from the same log, starting within ``max_gap_us`` of that scene's end."""
+    from the same log, starting within ``max_gap_us`` of that scene's end. Consecutive nuScenes
+    scenes may share their boundary key frame: a start up to ``max_gap_us`` before that end
+    counts too, and :func:`after` drops the frames already driven."""
     if first is None or previous is None or not info.log_token:
         return False
     before, last_us = previous
-    return info.log_token == before.log_token and 0 < first.timestamp_us - last_us <= max_gap_us
+    return info.log_token == before.log_token and abs(first.timestamp_us - last_us) <= max_gap_us
+
+
+def after(frames: Iterable, last_us: int | None) -> Iterator:
+    """``frames`` from the first one later than ``last_us`` (None: all of them)."""
+    if last_us is None:
+        return iter(frames)
+    return itertools.dropwhile(lambda f: f.timestamp_us <= last_us, frames)
 
 
 class OdometryFeed:
@@ -232,7 +241,12 @@ class OdometryFeed:
             health = DopplerHealth(self.odometry.config.doppler.min_points)
             pending = 0  # frames not yet reported to the progress bar
             t_data = time.perf_counter()
-            for frame in itertools.chain([first], scene_frames) if first is not None else ():
+            to_drive: Iterator[Any] = (
+                itertools.chain([first], scene_frames) if first is not None else iter(())
+            )
+            if continues is not None:  # frames the scene before it drove already are not redone
+                to_drive = after(to_drive, previous[1] if previous is not None else None)
+            for frame in to_drive:
                 t0 = time.perf_counter()
                 if own_reading:  # else the reading process reports its own time
                     timings.data_s += t0 - t_data
@@ -446,12 +460,17 @@ def estimate_calibration(
         for i, info in enumerate(infos):
             frames = iter(reader.iter_frames(info, filters=frame_filter))
             first = next(frames, None)
+            drive: Iterator[Any] = (
+                itertools.chain([first], frames) if first is not None else iter(())
+            )
             if continue_log_scenes and drives_on(info, previous, first, max_gap_us):
+                assert previous is not None
                 odometry.fold_calibration()
+                drive = after(drive, previous[1])
             else:
                 odometry.reset()
-            last_us = None
-            for frame in itertools.chain([first], frames) if first is not None else ():
+            last_us: int | None = None
+            for frame in drive:
                 odometry.process(frame)
                 last_us = frame.timestamp_us
             previous = (info, last_us) if last_us is not None else None

@@ -145,13 +145,43 @@ def test_a_scene_drives_on_from_the_scene_before_it(log, gap_s, continues):
     """Same log and within the gap limit (1 s here) of the previous scene's last frame."""
     from radarslam.slam.feed import drives_on
 
-    before, after = _scenes(2)
-    after = SceneInfo(after.name, after.token, log, "city", "2026-01-01", "car", 40, "a", "b")
+    before, nxt = _scenes(2)
+    nxt = SceneInfo(nxt.name, nxt.token, log, "city", "2026-01-01", "car", 40, "a", "b")
     first = SimpleNamespace(timestamp_us=5_000_000 + round(gap_s * 1e6))
-    assert drives_on(after, (before, 5_000_000), first, 1e6) is continues
-    assert not drives_on(after, None, first, 1e6)  # nothing before it (or without frames)
-    assert not drives_on(after, (before, 5_000_000), None, 1e6)  # no frame of its own
-    earlier = SimpleNamespace(timestamp_us=4_000_000)  # before the other's end: not its sequel
-    assert not drives_on(after, (before, 5_000_000), earlier, 1e6)
-    nolog = SceneInfo(after.name, after.token, "", "city", "2026-01-01", "car", 40, "a", "b")
+    assert drives_on(nxt, (before, 5_000_000), first, 1e6) is continues
+    assert not drives_on(nxt, None, first, 1e6)  # nothing before it (or without frames)
+    assert not drives_on(nxt, (before, 5_000_000), None, 1e6)  # no frame of its own
+    # a start on the other's last frame (a shared boundary key frame) or a little before it
+    # counts; one far before it is not a sequel
+    for start_us, sequel in ((5_000_000, True), (4_500_000, True), (2_000_000, False)):
+        start = SimpleNamespace(timestamp_us=start_us)
+        assert drives_on(nxt, (before, 5_000_000), start, 1e6) is (sequel and log == "log")
+    nolog = SceneInfo(nxt.name, nxt.token, "", "city", "2026-01-01", "car", 40, "a", "b")
     assert not drives_on(nolog, (_scenes(1)[0], 5_000_000), first, 1e6)
+
+
+def test_a_continued_scene_skips_the_frames_already_driven(monkeypatch):
+    """Scenes that share their boundary frame: the pass drives each frame once, in time order."""
+    from radarslam.slam.feed import after
+
+    frames = [SimpleNamespace(timestamp_us=t) for t in (10, 20, 30)]
+    assert [f.timestamp_us for f in after(frames, 20)] == [30]
+    assert [f.timestamp_us for f in after(frames, None)] == [10, 20, 30]
+    assert list(after(frames, 30)) == []
+
+    class Overlapping(_Reader):  # scene k: frames at k and k + 1 s, the next starts on k + 1 s
+        def iter_frames(self, info, filters=None):
+            k = int(info.name.split("-")[1])
+            for t in (k, k + 1):
+                yield SimpleNamespace(name=info.name, timestamp_us=t * 1_000_000)
+
+    driven: list[int] = []
+
+    class Recording(_fake_odometry([1.0] * 4)):  # type: ignore[misc]
+        def process(self, frame) -> None:
+            driven.append(frame.timestamp_us)
+            self.calibration = _Calibration(1.0)
+
+    monkeypatch.setattr(odometry_pipeline, "RadarOdometry", Recording)
+    estimate_calibration(Overlapping(), _scenes(3), OdometryConfig(), None, None)
+    assert driven == [0, 1_000_000, 2_000_000, 3_000_000]

@@ -1091,3 +1091,31 @@ def test_a_continued_session_outside_the_map_enters_it_through_its_chain(sim_dat
     for s in res.sessions:
         err = np.linalg.norm(s.slam_poses[:, :2, 3] - s.gt_poses[:, :2, 3], axis=1)
         assert err.max() < 2.0, (s.name, err.max())
+
+
+def test_scenes_sharing_their_boundary_frame_are_driven_once(sim_dataroot):
+    """Consecutive nuScenes scenes may share their boundary key frame: here the second scene
+    also starts with the first one's last frame. It continues the first, and the shared frame
+    is driven once (the odometry refuses a frame that is not after the previous one)."""
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    root = sim_dataroot(["schedule.scene_gap_s=[0.2, 0.4]"])
+
+    class SharedBoundary(NuScenesRadar):
+        def iter_frames(self, scene, *args, **kwargs):
+            name = scene if isinstance(scene, str) else scene.name
+            names = [s.name for s in self.scenes()]
+            if name == names[1]:
+                yield list(super().iter_frames(names[0], *args, **kwargs))[-1]
+            yield from super().iter_frames(scene, *args, **kwargs)
+
+    reader = SharedBoundary(root, "v1.0-mini")
+    names = [s.name for s in reader.scenes()]
+    cfg = SlamConfig()
+    cfg.loops.enabled = False
+    pipeline = SlamPipeline(reader, cfg, progress=False)
+    res = pipeline.run(names)
+    assert res.continues == {names[1]: names[0]}
+    first, second = (pipeline.sessions[n] for n in names)
+    assert second.timestamps_us[0] > first.timestamps_us[-1]
+    assert len(res.components) == 1
