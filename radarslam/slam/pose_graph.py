@@ -1,13 +1,14 @@
 """Multi-session pose graph over GTSAM: iSAM2 while driving, a final batch LM (optionally GNC).
 
 Nodes are key frames, addressed by :class:`~radarslam.io.loops.NodeKey` ``(session, index)``.
-Each session (nuScenes scene) is its own odometry chain. A session added with ``anchor="prior"``
+Each session (nuScenes scene) is its own odometry chain, or goes on from the chain of the scene
+it continues (:meth:`PoseGraph.add_continuation`). A session added with ``anchor="prior"``
 (the first) is pinned by a tight prior at its first pose guess; a session added with
 ``anchor="unknown"`` gets a *weak* prior (``unknown_anchor_sigmas``, default 100 m / pi) at its
 first pose guess: it keeps the problem well posed while the session floats, and it is negligible
 (information ratio ~1e-6) as soon as loop closures tie the session to the others. A session never
-joined by a loop therefore stays where its guess put it and is reported as its own component by
-:meth:`PoseGraph.components` instead of being silently forced onto the others.
+joined by a loop or a continuation therefore stays where its guess put it and is reported as its
+own component by :meth:`PoseGraph.components` instead of being silently forced onto the others.
 
 GTSAM key scheme: ``gtsam.symbol('x', (session_ordinal << 32) | index)`` where
 ``session_ordinal`` counts sessions in the order they were added (``Symbol(k).string()`` reads
