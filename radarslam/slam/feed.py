@@ -11,6 +11,7 @@ key-frame work (recognition, registration, iSAM2) overlap, with identical result
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import logging
 import os
@@ -161,6 +162,45 @@ def after(frames: Iterable, last_us: int | None) -> Iterator:
     return itertools.dropwhile(lambda f: f.timestamp_us <= last_us, frames)
 
 
+@dataclass
+class SceneDrive:
+    """One scene as the odometry drives it: ``frames`` (those not driven already), the session
+    it ``continues`` (None: it starts a drive), and the time of the last frame driven so far."""
+
+    info: SceneInfo
+    continues: str | None
+    frames: Iterator[Any]
+    last_us: int | None = None
+
+
+def scene_drives(
+    infos: Sequence[SceneInfo], read: Callable, max_gap_us: float, continue_log_scenes: bool
+) -> Iterator[SceneDrive]:
+    """The scenes in order, each continuing the one before it where :func:`drives_on` says so
+    (with ``continue_log_scenes``); ``read(info)`` gives a scene's frames. A drive's frames
+    must be consumed before the next one is asked for: its end decides the next one."""
+    previous: tuple[SceneInfo, int] | None = None  # the last scene with frames, its end
+
+    def recorded(frames: Iterator, drive: SceneDrive) -> Iterator:
+        for frame in frames:
+            drive.last_us = frame.timestamp_us
+            yield frame
+
+    for info in infos:
+        frames = iter(read(info))
+        first = next(frames, None)
+        drive = SceneDrive(info, None, iter(()))
+        if first is not None:
+            todo: Iterator[Any] = itertools.chain([first], frames)
+            if continue_log_scenes and drives_on(info, previous, first, max_gap_us):
+                assert previous is not None
+                drive.continues = previous[0].name
+                todo = after(todo, previous[1])  # frames the scene before drove already
+            drive.frames = recorded(todo, drive)
+        yield drive
+        previous = (info, drive.last_us) if drive.last_us is not None else None
+
+
 class OdometryFeed:
     """Odometry over every frame of the scenes, as :data:`FeedMessage` s.
 
@@ -209,21 +249,23 @@ class OdometryFeed:
         # its links depended on a few marginal registrations: one session 100 m off, or 2 of 8).
         cloud_mounting = mounting_rotations(cfg.odometry.mounting_yaw_deg)
         use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
-        max_gap_us = self.odometry.config.fusion.max_gap_s * 1e6
-        previous: tuple[SceneInfo, int] | None = None  # the last scene with frames, its end
         buffer = None
-        for n, info in enumerate(infos):
-            scene_frames = iter(read(info))
+        drives = scene_drives(
+            infos,
+            read,
+            self.odometry.config.fusion.max_gap_s * 1e6,
+            cfg.continue_log_scenes,
+        )
+        for n in itertools.count():
             t_data = time.perf_counter()
-            first = next(scene_frames, None)
+            drive = next(drives, None)  # reads the scene's first frame
+            if drive is None:
+                break
             if own_reading:
                 timings.data_s += time.perf_counter() - t_data
-            continues = None
-            if cfg.continue_log_scenes and drives_on(info, previous, first, max_gap_us):
-                assert previous is not None
-                continues = previous[0].name
-            yield SessionStart(info.name, continues)
-            if continues is not None:  # the odometry and the sweep buffer drive on
+            info = drive.info
+            yield SessionStart(info.name, drive.continues)
+            if drive.continues is not None:  # the odometry and the sweep buffer drive on
                 self.odometry.fold_calibration()
             else:
                 self.odometry.config.initial_pose = (
@@ -241,12 +283,7 @@ class OdometryFeed:
             health = DopplerHealth(self.odometry.config.doppler.min_points)
             pending = 0  # frames not yet reported to the progress bar
             t_data = time.perf_counter()
-            to_drive: Iterator[Any] = (
-                itertools.chain([first], scene_frames) if first is not None else iter(())
-            )
-            if continues is not None:  # frames the scene before it drove already are not redone
-                to_drive = after(to_drive, previous[1] if previous is not None else None)
-            for frame in to_drive:
+            for frame in drive.frames:
                 t0 = time.perf_counter()
                 if own_reading:  # else the reading process reports its own time
                     timings.data_s += t0 - t_data
@@ -280,7 +317,6 @@ class OdometryFeed:
                 log.warning("scene %s: %s: its odometry is unreliable", info.name, why)
             if span is not None:
                 yield SessionSpan(span[0], span[1])
-            previous = (info, span[1]) if span is not None else None
         self.calibration = self.odometry.calibration.as_dict()
         self.calibrations = [c.as_dict() for c in self.odometry.calibrations]
 
@@ -454,26 +490,18 @@ def estimate_calibration(
     def result(used: int, converged: bool) -> CalibrationPassResult:
         return CalibrationPassResult(odometry.calibration.as_dict(), converged, used, len(infos))
 
-    max_gap_us = config.fusion.max_gap_s * 1e6
-    previous: tuple[SceneInfo, int] | None = None
+    def read(info: SceneInfo):
+        return reader.iter_frames(info, filters=frame_filter)
+
+    drives = scene_drives(infos, read, config.fusion.max_gap_s * 1e6, continue_log_scenes)
     try:
-        for i, info in enumerate(infos):
-            frames = iter(reader.iter_frames(info, filters=frame_filter))
-            first = next(frames, None)
-            drive: Iterator[Any] = (
-                itertools.chain([first], frames) if first is not None else iter(())
-            )
-            if continue_log_scenes and drives_on(info, previous, first, max_gap_us):
-                assert previous is not None
+        for i, drive in enumerate(drives):
+            if drive.continues is not None:
                 odometry.fold_calibration()
-                drive = after(drive, previous[1])
             else:
                 odometry.reset()
-            last_us: int | None = None
-            for frame in drive:
+            for frame in drive.frames:
                 odometry.process(frame)
-                last_us = frame.timestamp_us
-            previous = (info, last_us) if last_us is not None else None
             if bar is not None:
                 bar.update(1)
             if max_sigma_deg is None:
@@ -503,10 +531,18 @@ def calibration_pass(
     """:func:`estimate_calibration`, with ``forked`` in a forked process as the run's odometry
     is: kiss-icp may ``abort()`` the process it runs in, which then ends with a clear error
     instead of taking this one with it."""
+    estimate = functools.partial(
+        estimate_calibration,
+        reader,
+        infos,
+        config,
+        frame_filter,
+        max_sigma_deg,
+        progress,
+        continue_log_scenes,
+    )
     if not forked:
-        return estimate_calibration(
-            reader, infos, config, frame_filter, max_sigma_deg, progress, continue_log_scenes
-        )
+        return estimate()
     import multiprocessing as mp
     import queue as queue_mod
 
@@ -514,19 +550,9 @@ def calibration_pass(
 
     ctx = mp.get_context("fork")
     results = ctx.Queue(maxsize=1)
-    proc = ctx.Process(
+    proc = ctx.Process(  # fork: the partial is not pickled
         target=_calibration_process,
-        args=(
-            reader,
-            infos,
-            config,
-            frame_filter,
-            max_sigma_deg,
-            progress,
-            continue_log_scenes,
-            results,
-            os.getpid(),
-        ),
+        args=(estimate, results, os.getpid()),
         name="slam-calibration",
     )
     proc.daemon = True
@@ -553,30 +579,10 @@ def calibration_pass(
         _end_helper(proc, stop_now=not finished)
 
 
-def _calibration_process(
-    reader,
-    infos,
-    config,
-    frame_filter,
-    max_sigma_deg,
-    progress,
-    continue_log_scenes,
-    results,
-    parent: int,
-) -> None:
+def _calibration_process(estimate: Callable[[], CalibrationPassResult], results, parent) -> None:
     try:
         helper_process_setup(parent)
-        results.put(
-            estimate_calibration(
-                reader,
-                infos,
-                config,
-                frame_filter,
-                max_sigma_deg,
-                progress,
-                continue_log_scenes,
-            )
-        )
+        results.put(estimate())
     except BaseException as exc:  # handed to the parent, which raises it
         _put_error(results, exc, "calibration pass process")
     finally:
