@@ -207,13 +207,14 @@ class MapState:
         per session (of the sessions ``among``, if given; ``recent_of``'s recent past left out,
         in its session and those of its drive)."""
         cfg = self.config.loops
+        drive = self.sessions[recent_of.key.session].drive if recent_of is not None else None
         found: list[tuple[float, KeyFrame]] = []
         for name, group_from_session in group.from_session.items():
             if among is not None and name not in among:
                 continue
             other = self.sessions[name]
             pos = other.positions()
-            if recent_of is not None and other.drive == self.sessions[recent_of.key.session].drive:
+            if recent_of is not None and other.drive == drive:
                 recent_us = recent_of.timestamp_us - cfg.exclude_recent_s * 1e6
                 pos = pos[: bisect.bisect_left(other.timestamps_us, recent_us)]
             if not len(pos):
