@@ -98,6 +98,22 @@ class EgoMotionFit:
         return np.array([self.velocity_mps[0], self.velocity_mps[1], self.yaw_rate_radps])
 
 
+@dataclass(frozen=True)
+class TwistBounds:
+    """The twists a frame's fit may take: each component (vx m/s, vy m/s, yaw rate rad/s) within
+    ``half_width`` of ``center`` (what the vehicle can have reached since its last fit)."""
+
+    center: np.ndarray  # (3,)
+    half_width: np.ndarray  # (3,), > 0
+
+    def contains(self, twists: np.ndarray) -> np.ndarray:
+        """Per row of ``twists`` (K, 3) (or one (3,) twist): inside the bounds."""
+        return np.all(np.abs(np.asarray(twists) - self.center) <= self.half_width, axis=-1)
+
+    def scaled(self, gain: float) -> TwistBounds:
+        return TwistBounds(self.center * gain, self.half_width * abs(gain))
+
+
 class DopplerConfig(StrictModel):
     """Settings of :class:`DopplerEstimator` (the ``doppler`` section of the odometry config)."""
 
@@ -318,7 +334,14 @@ class DopplerEstimator:
             usable=self._usable(sweep),
         )
 
-    def fit_frame(self, frame: RadarFrame | Sequence[RadarSweep]) -> EgoMotionFit:
+    def fit_frame(
+        self, frame: RadarFrame | Sequence[RadarSweep], bounds: TwistBounds | None = None
+    ) -> EgoMotionFit:
+        """All radars of ``frame`` fitted jointly. With ``bounds``, only twists inside them are
+        hypotheses: a frame whose radars all see one moving object (a car alongside) can fit it
+        better than the static world when few radars report (two side-looking units observe
+        each its own velocity, leaving the yaw rate free), and the fit is then a twist no car
+        can reach within a frame. A frame with no plausible fit is invalid."""
         sweeps: Sequence[RadarSweep]
         if isinstance(frame, RadarFrame):
             sweeps = list(frame.sweeps.values())
@@ -368,7 +391,11 @@ class DopplerEstimator:
         counts = [len(r) for r in rhs]
         # Per point, which radar's lever arm: the relative threshold needs each sensor's speed.
         radar_of = np.repeat(np.arange(len(lever)), counts)
-        inl, x, cov, ego_static, yaw_obs = self._solve_joint(a, b, np.array(lever), radar_of)
+        if bounds is not None and c.speed_scale_error:
+            bounds = bounds.scaled(1.0 + c.speed_scale_error)  # in the fit's raw units
+        inl, x, cov, ego_static, yaw_obs = self._solve_joint(
+            a, b, np.array(lever), radar_of, bounds
+        )
         if x is None:
             return self._invalid_frame(sizes, channels, len(a))
         masks = {sw.channel: np.zeros(len(sw), dtype=bool) for sw in sweeps}
@@ -493,22 +520,32 @@ class DopplerEstimator:
         schur = info[2, 2] - (g0 * (i11 * g0 - i01 * g1) + g1 * (i00 * g1 - i01 * g0)) / det
         return True, bool(schur > 1.0 / _YAW_OBSERVABLE_SIGMA_RADPS**2)
 
-    def _solve_joint(self, a: np.ndarray, b: np.ndarray, levers: np.ndarray, radar_of: np.ndarray):
+    def _solve_joint(
+        self,
+        a: np.ndarray,
+        b: np.ndarray,
+        levers: np.ndarray,
+        radar_of: np.ndarray,
+        bounds: TwistBounds | None = None,
+    ):
         """(inliers, twist, covariance, ego static, yaw rate observable); Nones when no fit."""
         c = self.config
         n = len(a)
+        none = (None, None, None, False, False)
         if n < c.min_points:
-            return None, None, None, False, False
+            return none
         slow = np.abs(b) < c.static_speed_mps
         ego_static = bool(slow.sum() > c.static_fraction * n)
+        # A vehicle that cannot have stopped by now is not declared static.
+        zero_ok = bounds is None or bool(bounds.contains(np.zeros(3)))
         if ego_static and c.static_velocity == "zero":
-            return self._static_zero(a, b, slow)
+            return self._static_zero(a, b, slow) if zero_ok else none
         # "refit" estimates the velocity as when moving: fitting only the points slower than
         # static_speed_mps would truncate on the measurement itself and bias a creeping car's
         # speed low (real nuScenes, braking below 1.3 m/s: 0.1-0.2 m/s too slow).
-        fit = self._solve_moving(a, b, levers, radar_of)
+        fit = self._solve_moving(a, b, levers, radar_of, bounds)
         if fit is None:
-            return self._static_zero(a, b, slow) if ego_static else (None, None, None, False, False)
+            return self._static_zero(a, b, slow) if ego_static and zero_ok else none
         inl, x, cov, yaw_ok = fit
         return inl, x, cov, ego_static, yaw_ok
 
@@ -523,9 +560,16 @@ class DopplerEstimator:
         cov = var * np.linalg.inv(ata)
         return slow, np.zeros(3), 0.5 * (cov + cov.T), True, yaw_ok
 
-    def _solve_moving(self, a: np.ndarray, b: np.ndarray, levers: np.ndarray, radar_of: np.ndarray):
-        """RANSAC over minimal sets, then least squares on the consensus set (twice);
-        (inliers, twist, covariance, yaw rate observable) or None."""
+    def _solve_moving(
+        self,
+        a: np.ndarray,
+        b: np.ndarray,
+        levers: np.ndarray,
+        radar_of: np.ndarray,
+        bounds: TwistBounds | None = None,
+    ):
+        """RANSAC over minimal sets (those inside ``bounds``), then least squares on the
+        consensus set (twice); (inliers, twist, covariance, yaw rate observable) or None."""
         c = self.config
         n = len(a)
         vel_ok, yaw_ok = self._observability(a)
@@ -557,6 +601,15 @@ class DopplerEstimator:
             hyp = np.linalg.solve(am[good], bm[good][..., None])[..., 0]
             if p == 2:
                 hyp = np.column_stack([hyp, np.zeros(len(hyp))])
+        else:
+            hyp = np.zeros((0, 3))
+        if bounds is not None:
+            # The bounds' centre (the vehicle's last twist) is a hypothesis too: where the
+            # static world has few points, no random minimal set inside the bounds may be clean.
+            hyp = hyp[bounds.contains(hyp)]
+            if not len(hyp):
+                hyp = bounds.center[None, :]
+        if len(hyp):
             res = np.abs(a @ hyp.T - b[:, None])  # (n, K)
             if c.relative_threshold is None:
                 counts = (res < c.inlier_threshold_mps).sum(axis=0)
@@ -582,5 +635,7 @@ class DopplerEstimator:
                 return None
             x, cov = self._solve(a_i, b[inl], ata_i)
             inl = inliers(x)
+        if bounds is not None and not bounds.contains(x):
+            return None
         yaw_ok = self._observability(a[inl])[1]
         return inl, x, cov, yaw_ok

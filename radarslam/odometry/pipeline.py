@@ -56,7 +56,7 @@ import numpy as np
 from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert, rigid_problem
 from radarslam.odometry.config import OdometryConfig
-from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit
+from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit, TwistBounds
 from radarslam.odometry.lie import adjoint_se2, exp_jacobian_twist, exp_se2, log_se2, planar
 from radarslam.odometry.registration import RegistrationResult, ScanToMapRegistration
 from radarslam.types import RADAR_CHANNELS, RadarFrame
@@ -443,6 +443,16 @@ class RadarOdometry:
         self._rejections = 0
         self._kf = _Interval()
         self._kf_started = False
+        #: The last valid Doppler twist and its time: the centre of the next fit's bounds.
+        self._last_fit: tuple[np.ndarray, int] | None = None
+
+    def _twist_bounds(self, timestamp_us: int) -> TwistBounds | None:
+        rate = self.config.fusion.max_twist_rate
+        if rate is None or self._last_fit is None:
+            return None
+        twist, t_us = self._last_fit
+        dt_s = max((timestamp_us - t_us) * 1e-6, 1e-3)
+        return TwistBounds(twist, np.asarray(rate, dtype=np.float64) * dt_s)
 
     @property
     def calibration(self) -> DopplerCalibration:
@@ -637,7 +647,9 @@ class RadarOdometry:
             if (not scenes or scenes[-1] != frame.scene_name) and frame.scene_name not in scenes:
                 scenes.append(frame.scene_name)
         frame = self.calibrated_frame(frame)
-        fit = self.doppler.fit_frame(frame)
+        fit = self.doppler.fit_frame(frame, self._twist_bounds(frame.timestamp_us))
+        if fit.valid:
+            self._last_fit = (fit.twist, int(frame.timestamp_us))
         t1 = time.perf_counter()
 
         # Twist of this frame: the fit, or the last one held (its uncertainty growing).
