@@ -445,6 +445,8 @@ class RadarOdometry:
         self._kf_started = False
         #: The last valid Doppler twist and its time: the centre of the next fit's bounds.
         self._last_fit: tuple[np.ndarray, int] | None = None
+        #: The covariance of the twist held while fits are invalid, and the time it was fitted.
+        self._held: tuple[np.ndarray, int] | None = None
 
     def _twist_bounds(self, timestamp_us: int) -> TwistBounds | None:
         rate = self.config.fusion.max_twist_rate
@@ -693,6 +695,16 @@ class RadarOdometry:
             jr = exp_jacobian_twist(xi)
             # Twist random walk (q per second) integrated over the interval: q dt^3.
             xi_cov = 0.25 * (self._twist_cov + twist_cov) * gap_s**2
+            if not fit.valid and self._held is not None:
+                # A held twist errs by one error for the whole hold, not by a fresh one each
+                # frame: from its last fit's covariance C0 and the growth G, the pose has drifted
+                # by C0 T^2 + G T^3 / 3 after T s (this interval adds the difference). Counted
+                # frame by frame, a 1 s hold claimed a third of the sigma, and the registration
+                # could not pull back the along-track error that braking through it left.
+                c0, since_us = self._held
+                a = (self._t_us - since_us) * 1e-6
+                b = a + gap_s
+                xi_cov = c0 * (b**2 - a**2) + self._growth * ((b**3 - a**3) / 3.0)
             if not (stopped and self._stopped):
                 # A vehicle stopped at both ends of a 77 ms interval did not accelerate in it.
                 xi_cov = xi_cov + self._q * gap_s**3
@@ -777,6 +789,8 @@ class RadarOdometry:
         self._t_us = frame.timestamp_us
         self._fused_yaw_rate = None if first else float(log_se2(relative)[2]) / gap_s
         self._twist, self._twist_cov = twist, twist_cov
+        if fit.valid:
+            self._held = (twist_cov, int(frame.timestamp_us))
         self._stopped = stopped
         self._last_icp_cov = icp_cov
         t4 = time.perf_counter()

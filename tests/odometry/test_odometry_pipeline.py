@@ -313,6 +313,31 @@ def test_long_run_of_empty_sweeps(world):
     assert np.linalg.norm(est[:2, 3] - true[:2, 3]) < 0.1
 
 
+def test_braking_through_a_one_second_outage_is_pulled_back_by_the_registration(world):
+    """All radars silent for 1 s while braking at 3 m/s^2: the held twist overshoots along the
+    track, the pose covariance says by how much (one held error, not a fresh one per frame), and
+    the registration pulls the pose back once the radars return."""
+    rng = np.random.default_rng(12)
+
+    def speed(t):
+        return 10.0 - 3.0 * float(np.clip(t - 2.0, 0.0, 2.0))
+
+    frames = drive(world, rng, num_frames=80, speed_mps=speed, empty=(30, 43), **NOISE)
+    res = run("ours", frames)
+    assert_sane(res)
+
+    def along_track_error(k):
+        r = res[k]
+        return (
+            r.world_from_ego[:2, :2].T @ (r.world_from_ego[:2, 3] - frames[k].world_from_ego[:2, 3])
+        )[0]
+
+    blind = res[42]
+    assert along_track_error(42) > 1.0  # pinned: 1.34 m past the truth after the hold (sigma 0.62)
+    assert along_track_error(42) < 3 * np.sqrt(blind.pose_covariance[0, 0])
+    assert abs(along_track_error(55)) < 0.15, along_track_error(55)
+
+
 def test_traffic_jam_half_the_points_moving(world):
     rng = np.random.default_rng(6)
     frames = drive(

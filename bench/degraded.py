@@ -1,0 +1,204 @@
+"""Odometry on degraded real radar: sweeps lost at random, one radar silent, all radars silent.
+
+    python bench/degraded.py            # the real split, ../shared/data/nuscenes-mini-radar
+    python bench/degraded.py --dataroot D --version v1.0-trainval [--scenes a,b]
+    python bench/degraded.py ... --json results.json
+
+Real ARS408 sweeps can be empty (2.4 % of the sweeps of real nuScenes scenes other than these five)
+and a radar can fail or be blocked. Each condition is a copy of the dataroot under ``--work``
+(links to the real files, the tables unchanged) in which the chosen sweeps are rewritten as valid
+radar files with no point; the three methods of ``bench/odometry.py`` then run on it exactly as on
+the real split (each scene its own segment, started on its ground truth):
+
+* ``clean``: the dataroot as it is;
+* ``empty 2.4 %`` / ``empty 10 %``: every sweep emptied with that probability (``--seed``);
+* ``silent RADAR_X``: every sweep of one radar empty (each radar in turn);
+* ``silent all 1 s``: all five radars empty for 1 s in the middle of each scene (frames still
+  come, with no point: the odometry holds its last motion through them).
+
+Per condition: pooled ATE (SE(2)-aligned) of each method, ours against the peer, and the scene
+where ours is worst against the clean run. The real data is read in place and linked, never copied
+into the repository.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import multiprocessing as mp
+import os
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+
+
+def _odometry_bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location(
+        "bench_odometry", Path(__file__).with_name("odometry.py")
+    )
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    # Pool workers unpickle its functions by module name.
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+odobench = _odometry_bench()
+METHODS: tuple[str, ...] = odobench.METHODS
+#: Rate of empty sweeps on real nuScenes scenes other than the shared five.
+REAL_EMPTY_RATE = 0.024
+OUTAGE_S = 1.0
+
+
+def conditions(channels: list[str]) -> list[tuple[str, dict]]:
+    out: list[tuple[str, dict]] = [("clean", {})]
+    out += [(f"empty {100 * p:g} %", {"empty_rate": p}) for p in (REAL_EMPTY_RATE, 0.10)]
+    out += [(f"silent {ch}", {"silent": ch}) for ch in channels]
+    out.append((f"silent all {OUTAGE_S:g} s", {"outage_s": OUTAGE_S}))
+    return out
+
+
+@dataclass(frozen=True)
+class Sweep:
+    filename: str  # relative to the dataroot
+    channel: str
+    timestamp_us: int
+
+
+def sweeps_by_scene(dataroot: Path, version: str) -> dict[str, list[Sweep]]:
+    """Every radar sweep of the tables, per scene name (sweeps point to a sample of their scene)."""
+
+    def table(name: str) -> list[dict]:
+        return json.loads((dataroot / version / f"{name}.json").read_text())
+
+    scene_name = {s["token"]: s["name"] for s in table("scene")}
+    scene_of = {s["token"]: scene_name[s["scene_token"]] for s in table("sample")}
+    channel_of = {s["token"]: s["channel"] for s in table("sensor")}
+    channel = {c["token"]: channel_of[c["sensor_token"]] for c in table("calibrated_sensor")}
+    out: dict[str, list[Sweep]] = {}
+    for r in table("sample_data"):
+        ch = channel[r["calibrated_sensor_token"]]
+        if ch.startswith("RADAR_"):
+            sweep = Sweep(r["filename"], ch, int(r["timestamp"]))
+            out.setdefault(scene_of[r["sample_token"]], []).append(sweep)
+    return out
+
+
+def emptied(sweeps: list[Sweep], spec: dict, rng: np.random.Generator) -> set[str]:
+    """Files of one scene's sweeps that a condition empties."""
+    if "empty_rate" in spec:
+        return {s.filename for s in sweeps if rng.random() < spec["empty_rate"]}
+    if "silent" in spec:
+        return {s.filename for s in sweeps if s.channel == spec["silent"]}
+    if "outage_s" in spec:
+        t = np.array([s.timestamp_us for s in sweeps])
+        mid, half = 0.5 * (t.min() + t.max()), 0.5 * spec["outage_s"] * 1e6
+        return {s.filename for s in sweeps if abs(s.timestamp_us - mid) <= half}
+    return set()
+
+
+def degraded_root(src: Path, dst: Path, empty: set[str]) -> None:
+    """``dst``: ``src`` with the files in ``empty`` replaced by radar files with no point, every
+    other file a link to the original."""
+    from radarslam.nuscenes.pcd import pcd_bytes
+    from radarslam.types import RADAR_DTYPE
+
+    if dst.exists():
+        shutil.rmtree(dst)
+    blank = pcd_bytes(np.zeros(0, dtype=RADAR_DTYPE), padding=1)
+    for dirpath, _, files in os.walk(src):
+        rel = Path(dirpath).relative_to(src)
+        (dst / rel).mkdir(parents=True, exist_ok=True)
+        for f in files:
+            key = (rel / f).as_posix()
+            if key in empty:
+                (dst / rel / f).write_bytes(blank)
+            else:
+                os.symlink(Path(dirpath, f).resolve(), dst / rel / f)
+
+
+def run_condition(root: Path, version: str, scenes: list[str], jobs: int) -> dict:
+    jobs_list = [(str(root), version, [s], []) for s in scenes]
+    with mp.get_context("fork").Pool(max(1, min(jobs, len(jobs_list)))) as pool:
+        results = pool.map(odobench.run_segment, jobs_list, chunksize=1)
+    per_scene = {
+        r["scenes"][0]: {m: odobench.segment_metrics(r, m) for m in METHODS} for r in results
+    }
+    pool_rows = {m: odobench.pooled([rows[m] for rows in per_scene.values()]) for m in METHODS}
+    return {
+        "scenes": {s: {m: rows[m]["ate_m"] for m in METHODS} for s, rows in per_scene.items()},
+        "pooled": {m: pool_rows[m]["ate_m"] for m in METHODS},
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--dataroot", type=Path, default=odobench.REAL_DATAROOT)
+    ap.add_argument("--version", default="v1.0-mini")
+    ap.add_argument("--scenes", default=None, help="comma-separated scene names (default: all)")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/radarslam_bench_degraded"))
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0, help="which sweeps are emptied at random")
+    ap.add_argument(
+        "--only", default=None, help="run only the conditions whose name contains this (and clean)"
+    )
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    from radarslam.errors import RadarSlamError
+    from radarslam.io.atomic import write_text_atomic
+    from radarslam.nuscenes.reader import NuScenesRadar
+
+    if not (args.dataroot / args.version).is_dir():
+        sys.exit(
+            f"bench/degraded.py: no {args.version} tables under {args.dataroot} (the real split "
+            "lives in ../shared/data/nuscenes-mini-radar; see its README)"
+        )
+    try:
+        reader = NuScenesRadar(args.dataroot, args.version)
+        scenes = args.scenes.split(",") if args.scenes else [s.name for s in reader.scenes()]
+        for s in scenes:
+            reader.scene(s)  # an unknown name fails here, with the names there are
+    except RadarSlamError as exc:
+        sys.exit(f"bench/degraded.py: {exc}")
+    sweeps = sweeps_by_scene(args.dataroot, args.version)
+    channels = sorted({w.channel for s in scenes for w in sweeps[s]})
+    rows: dict[str, dict] = {}
+    for k, (name, spec) in enumerate(conditions(channels)):
+        if args.only and name != "clean" and args.only not in name:
+            continue
+        rng = np.random.default_rng(args.seed)
+        empty = set().union(*(emptied(sweeps[s], spec, rng) for s in scenes))
+        root = args.dataroot
+        if empty:
+            root = args.work / f"condition{k}"
+            degraded_root(args.dataroot.resolve(), root, empty)
+        print(f"{name}: {len(empty)} sweeps emptied", flush=True)
+        rows[name] = run_condition(root, args.version, scenes, args.jobs)
+        rows[name]["sweeps_emptied"] = len(empty)
+    clean = rows["clean"]["scenes"]
+    print(f"\npooled ATE (SE(2)-aligned), m, over {len(scenes)} scenes")
+    head = f"{'condition':<26}" + "".join(f"{m:>10}" for m in METHODS)
+    print(head + f"{'ours/peer':>11}  ours' worst scene against clean")
+    print("-" * (len(head) + 46))
+    for name, row in rows.items():
+        p = row["pooled"]
+        worst = max(scenes, key=lambda s: row["scenes"][s]["ours"] - clean[s]["ours"])
+        w = row["scenes"][worst]
+        print(
+            f"{name:<26}" + "".join(f"{p[m]:>10.3f}" for m in METHODS)
+            + f"{p['ours'] / p['kiss-icp']:>11.2f}  {worst} {clean[worst]['ours']:.3f} -> "
+            f"{w['ours']:.3f} (peer {w['kiss-icp']:.3f})"
+        )  # fmt: skip
+    if args.json:
+        write_text_atomic(args.json, json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
