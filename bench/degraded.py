@@ -13,6 +13,8 @@ the real split (each scene its own segment, started on its ground truth):
 * ``clean``: the dataroot as it is;
 * ``empty 2.4 %`` / ``empty 10 %``: every sweep emptied with that probability (``--seed``);
 * ``silent RADAR_X``: every sweep of one radar empty (each radar in turn);
+* ``only RADAR_FRONT``: every other radar silent (a single forward radar, whose Doppler alone
+  cannot observe the yaw rate);
 * ``silent all 1 s``: all five radars empty for 1 s in the middle of each scene (frames still
   come, with no point: the odometry holds its last motion through them).
 
@@ -60,6 +62,7 @@ def conditions(channels: list[str]) -> list[tuple[str, dict]]:
     out: list[tuple[str, dict]] = [("clean", {})]
     out += [(f"empty {100 * p:g} %", {"empty_rate": p}) for p in (REAL_EMPTY_RATE, 0.10)]
     out += [(f"silent {ch}", {"silent": ch}) for ch in channels]
+    out += [(f"only {ch}", {"only": ch}) for ch in ("RADAR_FRONT",) if ch in channels]
     out.append((f"silent all {OUTAGE_S:g} s", {"outage_s": OUTAGE_S}))
     return out
 
@@ -96,6 +99,8 @@ def emptied(sweeps: list[Sweep], spec: dict, rng: np.random.Generator) -> set[st
         return {s.filename for s in sweeps if rng.random() < spec["empty_rate"]}
     if "silent" in spec:
         return {s.filename for s in sweeps if s.channel == spec["silent"]}
+    if "only" in spec:
+        return {s.filename for s in sweeps if s.channel != spec["only"]}
     if "outage_s" in spec:
         t = np.array([s.timestamp_us for s in sweeps])
         mid, half = 0.5 * (t.min() + t.max()), 0.5 * spec["outage_s"] * 1e6

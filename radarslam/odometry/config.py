@@ -210,7 +210,10 @@ class OdometryConfig(StrictModel):
     initial_pose: Literal["ground_truth", "identity"] = "ground_truth"
     doppler: DopplerConfig = Field(
         default_factory=lambda: DopplerConfig(
-            static_velocity="refit", min_points=4, speed_scale_error=-0.003
+            static_velocity="refit",
+            min_points=4,
+            speed_scale_error=-0.003,
+            fallback_lateral_velocity_sigma_mps=0.2,
         )
     )
     points: PointsConfig = Field(default_factory=PointsConfig)

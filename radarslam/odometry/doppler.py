@@ -135,6 +135,10 @@ class DopplerConfig(StrictModel):
     #: Non-holonomic prior on the rear axle's lateral velocity (m/s, None = off): a car's rear axle
     #: does not slide sideways, which makes the yaw rate observable from a single radar.
     lateral_velocity_sigma_mps: float | None = Field(None, gt=0, le=1000)
+    #: The same prior for the frames whose radars alone leave the yaw rate free (one radar
+    #: reporting, or several seeing along one line), where ``lateral_velocity_sigma_mps`` is None.
+    #: None: those frames' yaw rate is held at 0 by the weak prior below.
+    fallback_lateral_velocity_sigma_mps: float | None = Field(None, gt=0, le=1000)
     #: Weak prior keeping an unobservable yaw rate at 0 (rad/s).
     yaw_rate_prior_sigma_radps: float = Field(10.0, gt=0, le=1000)
     #: The radars' Doppler scale: they measure (1 + this) x the true radial velocity, and the
@@ -393,8 +397,12 @@ class DopplerEstimator:
         radar_of = np.repeat(np.arange(len(lever)), counts)
         if bounds is not None and c.speed_scale_error:
             bounds = bounds.scaled(1.0 + c.speed_scale_error)  # in the fit's raw units
+        lateral = c.lateral_velocity_sigma_mps
+        if lateral is None and c.fallback_lateral_velocity_sigma_mps is not None:
+            if not self._observability(a, None)[1]:
+                lateral = c.fallback_lateral_velocity_sigma_mps
         inl, x, cov, ego_static, yaw_obs = self._solve_joint(
-            a, b, np.array(lever), radar_of, bounds
+            a, b, np.array(lever), radar_of, bounds, lateral
         )
         if x is None:
             return self._invalid_frame(sizes, channels, len(a))
@@ -405,7 +413,14 @@ class DopplerEstimator:
             start += cnt
         res = a[inl] @ x - b[inl]
         mount = self._mounting_jacobian(
-            a, b, x, inl, radar_of, [sweeps[k].channel for k, _ in owner], levers=np.array(lever)
+            a,
+            b,
+            x,
+            inl,
+            radar_of,
+            [sweeps[k].channel for k, _ in owner],
+            levers=np.array(lever),
+            lateral=lateral,
         )
         if c.speed_scale_error:
             # Every measured v_r is (1 + e) times the model's, and the model is linear in the
@@ -427,7 +442,7 @@ class DopplerEstimator:
             mounting_jacobian=mount,
         )
 
-    def _mounting_jacobian(self, a, b, x, inl, radar_of, channels, levers) -> np.ndarray:
+    def _mounting_jacobian(self, a, b, x, inl, radar_of, channels, levers, lateral) -> np.ndarray:
         """(3, 5) derivative of the least-squares twist with respect to each radar's mounting
         yaw (columns in RADAR_CHANNELS order): turning radar i by d turns its lines of sight u to
         u + d (-u_y, u_x), which changes its rows of the linear system; the twist moves by
@@ -443,7 +458,7 @@ class DopplerEstimator:
         da[:, 2] = ai[:, 0] * t[:, 1] - ai[:, 1] * t[:, 0]
         resid = bi - ai @ x
         terms = da * resid[:, None] - ai * (da @ x)[:, None]
-        m = np.linalg.inv(ai.T @ ai + self._prior() * self.config.noise_floor_mps**2)
+        m = np.linalg.inv(ai.T @ ai + self._prior(lateral) * self.config.noise_floor_mps**2)
         for k, ch in enumerate(channels):
             sel = ri == k
             if sel.any():
@@ -466,19 +481,23 @@ class DopplerEstimator:
             channels=channels,
         )
 
-    def _prior(self) -> np.ndarray:
+    def _prior(self, lateral: float | None) -> np.ndarray:
+        """Prior information: the weak zero yaw rate, and ``lateral`` (m/s) on the lateral
+        velocity unless None."""
         c = self.config
         info = np.zeros((3, 3))
         info[2, 2] = 1.0 / c.yaw_rate_prior_sigma_radps**2
-        if c.lateral_velocity_sigma_mps is not None:
-            info[1, 1] = 1.0 / c.lateral_velocity_sigma_mps**2
+        if lateral is not None:
+            info[1, 1] = 1.0 / lateral**2
         return info
 
-    def _solve(self, a: np.ndarray, b: np.ndarray, ata: np.ndarray | None = None):
+    def _solve(
+        self, a: np.ndarray, b: np.ndarray, lateral: float | None, ata: np.ndarray | None = None
+    ):
         """Least squares with the priors scaled to the residual variance (information form).
         ``ata`` = ``a.T @ a`` when the caller has it already."""
         c = self.config
-        prior = self._prior()
+        prior = self._prior(lateral)
         if ata is None:
             ata = a.T @ a
         atb = a.T @ b
@@ -493,8 +512,11 @@ class DopplerEstimator:
         cov = var * inv
         return x, 0.5 * (cov + cov.T)
 
-    def _observability(self, a: np.ndarray, ata: np.ndarray | None = None) -> tuple[bool, bool]:
-        """(velocity observable, yaw rate observable) from the geometry and the lateral prior.
+    def _observability(
+        self, a: np.ndarray, lateral: float | None, ata: np.ndarray | None = None
+    ) -> tuple[bool, bool]:
+        """(velocity observable, yaw rate observable) from the geometry and the lateral prior
+        ``lateral`` (None: the geometry alone).
         ``ata`` = ``a.T @ a`` when the caller has it already. 2x2 algebra in closed form: this
         runs several times per frame and np.linalg's per-call overhead dominated it."""
         n = len(a)
@@ -512,8 +534,8 @@ class DopplerEstimator:
         # prior, which exists only to keep an unobservable yaw rate finite).
         info = ata / c.noise_floor_mps**2
         i00, i01, i11 = info[0, 0], info[0, 1], info[1, 1]
-        if c.lateral_velocity_sigma_mps is not None:
-            i11 = i11 + 1.0 / c.lateral_velocity_sigma_mps**2
+        if lateral is not None:
+            i11 = i11 + 1.0 / lateral**2
         # Yaw-rate information left once (vx, vy) are estimated (Schur complement).
         g0, g1 = info[0, 2], info[1, 2]
         det = i00 * i11 - i01 * i01
@@ -526,7 +548,8 @@ class DopplerEstimator:
         b: np.ndarray,
         levers: np.ndarray,
         radar_of: np.ndarray,
-        bounds: TwistBounds | None = None,
+        bounds: TwistBounds | None,
+        lateral: float | None,
     ):
         """(inliers, twist, covariance, ego static, yaw rate observable); Nones when no fit."""
         c = self.config
@@ -539,24 +562,24 @@ class DopplerEstimator:
         # A vehicle that cannot have stopped by now is not declared static.
         zero_ok = bounds is None or bool(bounds.contains(np.zeros(3)))
         if ego_static and c.static_velocity == "zero":
-            return self._static_zero(a, b, slow) if zero_ok else none
+            return self._static_zero(a, b, slow, lateral) if zero_ok else none
         # "refit" estimates the velocity as when moving: fitting only the points slower than
         # static_speed_mps would truncate on the measurement itself and bias a creeping car's
         # speed low (real nuScenes, braking below 1.3 m/s: 0.1-0.2 m/s too slow).
-        fit = self._solve_moving(a, b, levers, radar_of, bounds)
+        fit = self._solve_moving(a, b, levers, radar_of, bounds, lateral)
         if fit is None:
-            return self._static_zero(a, b, slow) if ego_static and zero_ok else none
+            return self._static_zero(a, b, slow, lateral) if ego_static and zero_ok else none
         inl, x, cov, yaw_ok = fit
         return inl, x, cov, ego_static, yaw_ok
 
-    def _static_zero(self, a: np.ndarray, b: np.ndarray, slow: np.ndarray):
+    def _static_zero(self, a: np.ndarray, b: np.ndarray, slow: np.ndarray, lateral: float | None):
         """The static-ego rule's zero twist; its precision follows the slow points' geometry."""
         c = self.config
         a_s, b_s = a[slow], b[slow]
         ata_s = a_s.T @ a_s
-        yaw_ok = self._observability(a_s, ata_s)[1]
+        yaw_ok = self._observability(a_s, lateral, ata_s)[1]
         var = max(float(np.mean(b_s**2)), c.noise_floor_mps**2)
-        ata = ata_s + self._prior() * var + np.eye(3) * (var / _HUGE_VARIANCE)
+        ata = ata_s + self._prior(lateral) * var + np.eye(3) * (var / _HUGE_VARIANCE)
         cov = var * np.linalg.inv(ata)
         return slow, np.zeros(3), 0.5 * (cov + cov.T), True, yaw_ok
 
@@ -566,13 +589,14 @@ class DopplerEstimator:
         b: np.ndarray,
         levers: np.ndarray,
         radar_of: np.ndarray,
-        bounds: TwistBounds | None = None,
+        bounds: TwistBounds | None,
+        lateral: float | None,
     ):
         """RANSAC over minimal sets (those inside ``bounds``), then least squares on the
         consensus set (twice); (inliers, twist, covariance, yaw rate observable) or None."""
         c = self.config
         n = len(a)
-        vel_ok, yaw_ok = self._observability(a)
+        vel_ok, yaw_geometric = self._observability(a, None)
         if not vel_ok:
             return None
 
@@ -586,21 +610,25 @@ class DopplerEstimator:
 
         gen = np.random.default_rng(c.seed)
         k = c.iterations
-        # 3-point minimal sets (or 2 with the yaw rate at 0 when it is not observable).
-        p = 3 if yaw_ok else 2
+        # 3-point minimal sets where the radars' geometry observes the yaw rate; else 2 points,
+        # for (vx, yaw rate) with the lateral prior's vy = 0, or for (vx, vy) with the yaw rate 0.
+        if yaw_geometric:
+            cols = [0, 1, 2]
+        else:
+            cols = [0, 2] if lateral is not None else [0, 1]
+        p = len(cols)
         if n < p:
             return None
         # Duplicate indices give a singular minimal set, which the determinant test drops.
         samples = gen.integers(0, n, size=(k, p))
         best_x, best_count = None, -1
-        am = a[samples][:, :, :p]  # (k, p, p)
+        am = a[samples][:, :, cols]  # (k, p, p)
         bm = b[samples]
         dets = np.linalg.det(am)
         good = np.abs(dets) > _MIN_SAMPLE_DET * (1.0 if p == 2 else 0.5)
         if good.any():
-            hyp = np.linalg.solve(am[good], bm[good][..., None])[..., 0]
-            if p == 2:
-                hyp = np.column_stack([hyp, np.zeros(len(hyp))])
+            hyp = np.zeros((int(good.sum()), 3))
+            hyp[:, cols] = np.linalg.solve(am[good], bm[good][..., None])[..., 0]
         else:
             hyp = np.zeros((0, 3))
         if bounds is not None:
@@ -623,7 +651,7 @@ class DopplerEstimator:
             best = int(np.argmax(counts))
             best_x, best_count = hyp[best], counts[best]
         if best_x is None or best_count < p:
-            best_x, _ = self._solve(a, b)
+            best_x, _ = self._solve(a, b, lateral)
         inl = inliers(best_x)
         x, cov = best_x, np.eye(3) * _HUGE_VARIANCE
         for _ in range(2):
@@ -631,11 +659,11 @@ class DopplerEstimator:
                 return None
             a_i = a[inl]
             ata_i = a_i.T @ a_i
-            if not self._observability(a_i, ata_i)[0]:
+            if not self._observability(a_i, lateral, ata_i)[0]:
                 return None
-            x, cov = self._solve(a_i, b[inl], ata_i)
+            x, cov = self._solve(a_i, b[inl], lateral, ata_i)
             inl = inliers(x)
         if bounds is not None and not bounds.contains(x):
             return None
-        yaw_ok = self._observability(a[inl])[1]
+        yaw_ok = self._observability(a[inl], lateral)[1]
         return inl, x, cov, yaw_ok

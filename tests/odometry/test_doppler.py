@@ -353,3 +353,18 @@ def test_odometry_bounds_each_fit_by_the_previous_one(bounded):
     odo.reset()
     first = odo.process(dataclasses.replace(bad, timestamp_us=300_000))
     assert abs(first.doppler.yaw_rate_radps - w) > 0.7
+
+
+def test_fallback_lateral_prior_only_where_the_radars_leave_the_yaw_rate_free():
+    rng = np.random.default_rng(23)
+    v, w = np.array([10.0, 0.0]), 0.2
+    fallback = DopplerEstimator(DopplerConfig(fallback_lateral_velocity_sigma_mps=0.2))
+    # One radar, a third of its points moving: RANSAC over 2-point sets for (vx, yaw rate).
+    single = make_frame(rng, v, w, channels=("RADAR_FRONT",), n=80, moving_fraction=0.3)
+    fit = fallback.fit_frame(single)
+    assert fit.valid and fit.yaw_rate_observable
+    assert abs(fit.yaw_rate_radps - w) < 0.05 and np.linalg.norm(fit.velocity_mps - v) < 0.15
+    assert not DopplerEstimator().fit_frame(single).yaw_rate_observable
+    # Five radars observe the yaw rate themselves: the fallback changes nothing.
+    full = make_frame(rng, v, w, moving_fraction=0.3)
+    assert np.array_equal(fallback.fit_frame(full).twist, DopplerEstimator().fit_frame(full).twist)
