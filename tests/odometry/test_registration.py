@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from radarslam.odometry.doppler import DopplerConfig, DopplerEstimator
+from radarslam.odometry.doppler import DopplerEstimator
 from radarslam.odometry.lie import exp_se2
 from radarslam.odometry.registration import ScanToMapRegistration
 
@@ -91,12 +91,12 @@ def test_covariance_of_a_single_wall_is_unconstrained_along_it():
 def test_observability_closed_form_matches_linalg():
     rng = np.random.default_rng(4)
     for lateral in (None, 0.1):
-        est = DopplerEstimator(DopplerConfig(lateral_velocity_sigma_mps=lateral))
+        est = DopplerEstimator()
         c = est.config
         for spread in (1e-3, 0.05, 0.5, 3.0):
             ang = rng.normal(0, spread, 40)
             a = np.column_stack([np.cos(ang), np.sin(ang), rng.normal(0, 1.0, 40) * spread])
-            got = est._observability(a)
+            got = est._observability(a, lateral)
             eig = np.linalg.eigvalsh(a[:, :2].T @ a[:, :2] / len(a))[0]
             info = a.T @ a / c.noise_floor_mps**2
             if lateral is not None:
