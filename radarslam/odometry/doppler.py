@@ -56,6 +56,11 @@ _HUGE_VARIANCE = 1e6
 _MIN_SAMPLE_DET = 0.05
 #: A yaw rate whose standard deviation (at the noise floor) exceeds this is called unobservable.
 _YAW_OBSERVABLE_SIGMA_RADPS = 0.5
+#: The fallback lateral prior is used only where it gives the yaw rate to this (at the noise
+#: floor): through a radar far ahead of the rear axle (RADAR_FRONT, 3.4 m: 0.06 rad/s at 0.2 m/s),
+#: not through one beside it (a back unit, 0.6 m: 0.36 rad/s), whose mounting error alone would
+#: read as tens of deg/s.
+_FALLBACK_YAW_SIGMA_RADPS = 0.1
 
 
 @dataclass(frozen=True)
@@ -398,9 +403,10 @@ class DopplerEstimator:
         if bounds is not None and c.speed_scale_error:
             bounds = bounds.scaled(1.0 + c.speed_scale_error)  # in the fit's raw units
         lateral = c.lateral_velocity_sigma_mps
-        if lateral is None and c.fallback_lateral_velocity_sigma_mps is not None:
-            if not self._observability(a, None)[1]:
-                lateral = c.fallback_lateral_velocity_sigma_mps
+        fallback = c.fallback_lateral_velocity_sigma_mps
+        if lateral is None and fallback is not None and not self._observability(a, None)[1]:
+            if self._observability(a, fallback, max_yaw_sigma=_FALLBACK_YAW_SIGMA_RADPS)[1]:
+                lateral = fallback
         inl, x, cov, ego_static, yaw_obs = self._solve_joint(
             a, b, np.array(lever), radar_of, bounds, lateral
         )
@@ -513,10 +519,14 @@ class DopplerEstimator:
         return x, 0.5 * (cov + cov.T)
 
     def _observability(
-        self, a: np.ndarray, lateral: float | None, ata: np.ndarray | None = None
+        self,
+        a: np.ndarray,
+        lateral: float | None,
+        ata: np.ndarray | None = None,
+        max_yaw_sigma: float = _YAW_OBSERVABLE_SIGMA_RADPS,
     ) -> tuple[bool, bool]:
-        """(velocity observable, yaw rate observable) from the geometry and the lateral prior
-        ``lateral`` (None: the geometry alone).
+        """(velocity observable, yaw rate observable to ``max_yaw_sigma``) from the geometry and
+        the lateral prior ``lateral`` (None: the geometry alone).
         ``ata`` = ``a.T @ a`` when the caller has it already. 2x2 algebra in closed form: this
         runs several times per frame and np.linalg's per-call overhead dominated it."""
         n = len(a)
@@ -540,7 +550,7 @@ class DopplerEstimator:
         g0, g1 = info[0, 2], info[1, 2]
         det = i00 * i11 - i01 * i01
         schur = info[2, 2] - (g0 * (i11 * g0 - i01 * g1) + g1 * (i00 * g1 - i01 * g0)) / det
-        return True, bool(schur > 1.0 / _YAW_OBSERVABLE_SIGMA_RADPS**2)
+        return True, bool(schur > 1.0 / max_yaw_sigma**2)
 
     def _solve_joint(
         self,
