@@ -141,7 +141,8 @@ class DopplerConfig(StrictModel):
     #: does not slide sideways, which makes the yaw rate observable from a single radar.
     lateral_velocity_sigma_mps: float | None = Field(None, gt=0, le=1000)
     #: The same prior for the frames whose radars alone leave the yaw rate free (one radar
-    #: reporting, or several seeing along one line), where ``lateral_velocity_sigma_mps`` is None.
+    #: reporting, or several seeing along one line), where ``lateral_velocity_sigma_mps`` is None
+    #: and the prior gives the yaw rate to 0.1 rad/s (a radar far enough ahead of the rear axle).
     #: None: those frames' yaw rate is held at 0 by the weak prior below.
     fallback_lateral_velocity_sigma_mps: float | None = Field(None, gt=0, le=1000)
     #: Weak prior keeping an unobservable yaw rate at 0 (rad/s).

@@ -365,6 +365,10 @@ def test_fallback_lateral_prior_only_where_the_radars_leave_the_yaw_rate_free():
     assert fit.valid and fit.yaw_rate_observable
     assert abs(fit.yaw_rate_radps - w) < 0.05 and np.linalg.norm(fit.velocity_mps - v) < 0.15
     assert not DopplerEstimator().fit_frame(single).yaw_rate_observable
+    # A back unit sits 0.56 m behind the rear axle: the prior would pin its yaw rate to 0.4 rad/s
+    # only, and a mounting error would read as a turn. Its yaw rate stays unobserved.
+    back = make_frame(rng, v, w, channels=("RADAR_BACK_LEFT",), n=80, moving_fraction=0.3)
+    assert not fallback.fit_frame(back).yaw_rate_observable
     # Five radars observe the yaw rate themselves: the fallback changes nothing.
     full = make_frame(rng, v, w, moving_fraction=0.3)
     assert np.array_equal(fallback.fit_frame(full).twist, DopplerEstimator().fit_frame(full).twist)
