@@ -142,7 +142,7 @@ def run_condition(root: Path, version: str, scenes: list[str], jobs: int) -> dic
     }
 
 
-def main() -> None:
+def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dataroot", type=Path, default=odobench.REAL_DATAROOT)
     ap.add_argument("--version", default="v1.0-mini")
@@ -156,22 +156,21 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
-    from radarslam.errors import RadarSlamError
     from radarslam.io.atomic import write_text_atomic
     from radarslam.nuscenes.reader import NuScenesRadar
 
     if not (args.dataroot / args.version).is_dir():
-        sys.exit(
-            f"bench/degraded.py: no {args.version} tables under {args.dataroot} (the real split "
-            "lives in ../shared/data/nuscenes-mini-radar; see its README)"
+        print(
+            f"error: {args.dataroot / args.version}: no such folder (the real nuScenes radar "
+            "split lives in ../shared/data/nuscenes-mini-radar; see its README)",
+            file=sys.stderr,
         )
-    try:
-        reader = NuScenesRadar(args.dataroot, args.version)
-        scenes = args.scenes.split(",") if args.scenes else [s.name for s in reader.scenes()]
-        for s in scenes:
-            reader.scene(s)  # an unknown name fails here, with the names there are
-    except RadarSlamError as exc:
-        sys.exit(f"bench/degraded.py: {exc}")
+        return 2
+    # A bad dataroot or scene name is a RadarSlamError: one line from guarded().
+    reader = NuScenesRadar(args.dataroot, args.version)
+    scenes = args.scenes.split(",") if args.scenes else [s.name for s in reader.scenes()]
+    for s in scenes:
+        reader.scene(s)  # an unknown name fails here, before any copy is made
     sweeps = sweeps_by_scene(args.dataroot, args.version)
     channels = sorted({w.channel for s in scenes for w in sweeps[s]})
     rows: dict[str, dict] = {}
@@ -202,8 +201,11 @@ def main() -> None:
             f"{w['ours']:.3f} (peer {w['kiss-icp']:.3f})"
         )  # fmt: skip
     if args.json:
-        write_text_atomic(args.json, json.dumps(rows, indent=1))
+        write_text_atomic(args.json, json.dumps(rows, indent=1) + "\n")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    from _cli import guarded
+
+    guarded(main)

@@ -23,6 +23,8 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
         ("odometry.py", ["--dataroot", "{tmp}/none"], "no such folder"),
         ("odometry.py", ["--doppler-seeds", "0"], "--doppler-seeds"),
         ("realism.py", ["--set", "world.x=1", "--work", "{tmp}/work"], "world"),
+        ("degraded.py", ["--dataroot", "{tmp}/none", "--work", "{tmp}/work"], "no such folder"),
+        ("degraded.py", ["--scenes", "scene-9999", "--work", "{tmp}/work"], "scene-9999"),
     ],
 )
 def test_bad_argument_is_one_line_and_status_2(tmp_path, script, args, names):
