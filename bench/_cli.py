@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
 
 
 def guarded(main: Callable[[], object]) -> None:
@@ -18,3 +21,17 @@ def guarded(main: Callable[[], object]) -> None:
         sys.exit(2)
     if isinstance(code, int) and code:
         sys.exit(code)
+
+
+def sibling_bench(script: str) -> ModuleType:
+    """Another benchmark script of this folder (``odometry`` for bench/odometry.py), imported as
+    ``bench_<script>``: a pool's workers unpickle its functions by that module name."""
+    name = f"bench_{script}"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{script}.py"))
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod

@@ -26,7 +26,6 @@ into the repository.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import multiprocessing as mp
 import os
@@ -34,24 +33,13 @@ import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
+from _cli import sibling_bench
 
+from radarslam.types import RADAR_CHANNELS
 
-def _odometry_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location(
-        "bench_odometry", Path(__file__).with_name("odometry.py")
-    )
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    # Pool workers unpickle its functions by module name.
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-odobench = _odometry_bench()
+odobench = sibling_bench("odometry")
 METHODS: tuple[str, ...] = odobench.METHODS
 #: Rate of empty sweeps on real nuScenes scenes other than the shared five.
 REAL_EMPTY_RATE = 0.024
@@ -74,23 +62,13 @@ class Sweep:
     timestamp_us: int
 
 
-def sweeps_by_scene(dataroot: Path, version: str) -> dict[str, list[Sweep]]:
-    """Every radar sweep of the tables, per scene name (sweeps point to a sample of their scene)."""
-
-    def table(name: str) -> list[dict]:
-        return json.loads((dataroot / version / f"{name}.json").read_text())
-
-    scene_name = {s["token"]: s["name"] for s in table("scene")}
-    scene_of = {s["token"]: scene_name[s["scene_token"]] for s in table("sample")}
-    channel_of = {s["token"]: s["channel"] for s in table("sensor")}
-    channel = {c["token"]: channel_of[c["sensor_token"]] for c in table("calibrated_sensor")}
-    out: dict[str, list[Sweep]] = {}
-    for r in table("sample_data"):
-        ch = channel[r["calibrated_sensor_token"]]
-        if ch.startswith("RADAR_"):
-            sweep = Sweep(r["filename"], ch, int(r["timestamp"]))
-            out.setdefault(scene_of[r["sample_token"]], []).append(sweep)
-    return out
+def sweeps_of(reader, scene: str) -> list[Sweep]:
+    """Every radar sweep of a scene (no file is read)."""
+    return [
+        Sweep(filename, channel, t_us)
+        for channel in RADAR_CHANNELS
+        for filename, t_us in reader.sweep_files(scene, channel)
+    ]
 
 
 def emptied(sweeps: list[Sweep], spec: dict, rng: np.random.Generator) -> set[str]:
@@ -171,7 +149,7 @@ def main() -> int:
     scenes = args.scenes.split(",") if args.scenes else [s.name for s in reader.scenes()]
     for s in scenes:
         reader.scene(s)  # an unknown name fails here, before any copy is made
-    sweeps = sweeps_by_scene(args.dataroot, args.version)
+    sweeps = {s: sweeps_of(reader, s) for s in scenes}
     channels = sorted({w.channel for s in scenes for w in sweeps[s]})
     rows: dict[str, dict] = {}
     for k, (name, spec) in enumerate(conditions(channels)):

@@ -38,32 +38,18 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import importlib.util
 import math
 import multiprocessing as mp
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
+from _cli import sibling_bench
 
-
-def _odometry_bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location(
-        "bench_odometry", Path(__file__).with_name("odometry.py")
-    )
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    # Pool workers unpickle its functions by module name.
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-odobench = _odometry_bench()
+odobench = sibling_bench("odometry")
 METHODS: tuple[str, ...] = odobench.METHODS
 
 ATE_RATIO_RANGE = (0.5, 2.0)

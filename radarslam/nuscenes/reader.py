@@ -380,6 +380,15 @@ class NuScenesRadar:
         """sample_data tokens of one radar in a scene, in time order (no file is read)."""
         return [self.tables.radar.token[r].decode() for r in self._rows(scene, channel)]
 
+    def sweep_files(self, scene: str | SceneInfo, channel: str) -> list[tuple[str, int]]:
+        """(filename relative to the dataroot, timestamp in us) of each sweep of one radar in a
+        scene, in time order (no file is read)."""
+        radar = self.tables.radar
+        return [
+            (radar.filename[r].decode("utf-8"), int(radar.timestamp_us[r]))
+            for r in self._rows(scene, channel)
+        ]
+
     # ---- frames ------------------------------------------------------------------------------
     def _keyframe_rows(self) -> dict[int, dict[int, int]]:
         """sample row -> {channel index: key-frame sample_data row}."""

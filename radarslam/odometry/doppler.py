@@ -643,8 +643,8 @@ class DopplerEstimator:
         else:
             hyp = np.zeros((0, 3))
         if bounds is not None:
-            # The bounds' centre (the vehicle's last twist) is a hypothesis too: where the
-            # static world has few points, no random minimal set inside the bounds may be clean.
+            # Where no random minimal set lies inside the bounds (few static points), the
+            # bounds' centre, the vehicle's last twist, is the hypothesis.
             hyp = hyp[bounds.contains(hyp)]
             if not len(hyp):
                 hyp = bounds.center[None, :]

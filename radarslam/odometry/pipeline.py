@@ -443,16 +443,15 @@ class RadarOdometry:
         self._rejections = 0
         self._kf = _Interval()
         self._kf_started = False
-        #: The last valid Doppler twist and its time: the centre of the next fit's bounds.
-        self._last_fit: tuple[np.ndarray, int] | None = None
-        #: The covariance of the twist held while fits are invalid, and the time it was fitted.
-        self._held: tuple[np.ndarray, int] | None = None
+        #: The last valid Doppler fit: its twist (the centre of the next fit's bounds), the
+        #: covariance the filter gave it (that of the twist held while fits are invalid), its time.
+        self._last_fit: tuple[np.ndarray, np.ndarray, int] | None = None
 
     def _twist_bounds(self, timestamp_us: int) -> TwistBounds | None:
         rate = self.config.fusion.max_twist_rate
         if rate is None or self._last_fit is None:
             return None
-        twist, t_us = self._last_fit
+        twist, _, t_us = self._last_fit
         dt_s = max((timestamp_us - t_us) * 1e-6, 1e-3)
         return TwistBounds(twist, np.asarray(rate, dtype=np.float64) * dt_s)
 
@@ -650,8 +649,6 @@ class RadarOdometry:
                 scenes.append(frame.scene_name)
         frame = self.calibrated_frame(frame)
         fit = self.doppler.fit_frame(frame, self._twist_bounds(frame.timestamp_us))
-        if fit.valid:
-            self._last_fit = (fit.twist, int(frame.timestamp_us))
         t1 = time.perf_counter()
 
         # Twist of this frame: the fit, or the last one held (its uncertainty growing).
@@ -695,13 +692,13 @@ class RadarOdometry:
             jr = exp_jacobian_twist(xi)
             # Twist random walk (q per second) integrated over the interval: q dt^3.
             xi_cov = 0.25 * (self._twist_cov + twist_cov) * gap_s**2
-            if not fit.valid and self._held is not None:
+            if not fit.valid and self._last_fit is not None:
                 # A held twist errs by one error for the whole hold, not by a fresh one each
                 # frame: from its last fit's covariance C0 and the growth G, the pose has drifted
                 # by C0 T^2 + G T^3 / 3 after T s (this interval adds the difference). Counted
                 # frame by frame, a 1 s hold claimed a third of the sigma, and the registration
                 # could not pull back the along-track error that braking through it left.
-                c0, since_us = self._held
+                _, c0, since_us = self._last_fit
                 a = (self._t_us - since_us) * 1e-6
                 b = a + gap_s
                 xi_cov = c0 * (b**2 - a**2) + self._growth * ((b**3 - a**3) / 3.0)
@@ -790,7 +787,7 @@ class RadarOdometry:
         self._fused_yaw_rate = None if first else float(log_se2(relative)[2]) / gap_s
         self._twist, self._twist_cov = twist, twist_cov
         if fit.valid:
-            self._held = (twist_cov, int(frame.timestamp_us))
+            self._last_fit = (fit.twist, twist_cov, int(frame.timestamp_us))
         self._stopped = stopped
         self._last_icp_cov = icp_cov
         t4 = time.perf_counter()

@@ -458,3 +458,11 @@ def test_points_beyond_the_physical_range_are_dropped_and_reported_once(mini, cl
     for f in frames:
         for s in f.sweeps.values():
             assert np.abs(s.points["x"]).max(initial=0) <= MAX_POINT_COORDINATE_M
+
+
+def test_sweep_files_name_each_sweep_as_loading_it_does(mini, reader):
+    files = reader.sweep_files("scene-0004", "RADAR_FRONT_LEFT")
+    sweeps = list(reader.iter_sweeps("scene-0004", "RADAR_FRONT_LEFT"))
+    assert files == [(s.filename, s.timestamp_us) for s in sweeps]
+    assert all((mini.dataroot / name).is_file() for name, _ in files)
+    assert [t for _, t in files] == sorted(t for _, t in files)
