@@ -69,6 +69,10 @@ class TrafficConfig(StrictModel):
         0.0, ge=0
     )  # extra cars on the ego's own route, per direction (dense traffic / jams)
     signals: bool = True  # False: every light green (free-flowing dense traffic)
+    # With --trajectory: cars on the path's own street too (same way: the ego's motion shifted in
+    # time, as a queue; oncoming: constant speed), at car_density_per_km (+ route_density_per_km
+    # same way). The city's network traffic never drives a given path.
+    along_trajectory: bool = True
     light_cycle_s: tuple[float, float] = (45.0, 75.0)
     warmup_s: float = Field(60.0, ge=0)
     region_margin_m: float = Field(300.0, ge=50)

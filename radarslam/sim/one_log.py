@@ -20,8 +20,8 @@ from radarslam.sim.radar import (
     box_scatterers,
     mounting_errors,
 )
-from radarslam.sim.traffic import EGO_START_S, EgoMotion, simulate_traffic
-from radarslam.sim.world import Scatterers, StaticWorld, parked_cars
+from radarslam.sim.traffic import EGO_START_S, EgoMotion, path_traffic, simulate_traffic
+from radarslam.sim.world import Boxes, Scatterers, StaticWorld, parked_cars
 from radarslam.sim.writer import calibrated_sensor_record, make_token, pose_record
 from radarslam.types import RADAR_DTYPE
 
@@ -66,6 +66,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
     mounts = NUSCENES_MOUNTS
     ego_from_sensor = {m.channel: m.ego_from_sensor() for m in mounts}
     t_end = plan.scene_windows[-1][1] + 1.0
+    own_street = None  # cars on a given trajectory's own street
     if tum is not None:
         ego_src = TumEgo(tum)
         lo, hi = tum[:, 1:3].min(0), tum[:, 1:3].max(0)
@@ -84,6 +85,14 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
             region,
         )
         ego_fn = ego_src.ego
+        if cfg.traffic.along_trajectory:
+            own_street = path_traffic(
+                ego_fn,
+                ego_src.duration_s,
+                cfg.traffic,
+                np.random.default_rng([seed, 909, plan.index]),
+                t_end,
+            )
     else:
         route_rng = np.random.default_rng([seed, 505])
         routes = canonical_routes(
@@ -256,6 +265,8 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                     view = model.chunk_view(static, occ, refl, sxy[mid], float(syaw[mid]))
                 ts_us = plan.start_us + round(t_written[k] * 1e6)
                 boxes = traffic.boxes(float(t))
+                if own_street is not None:
+                    boxes = Boxes.concat([boxes, own_street.boxes(float(t))])
                 dropped = rng.uniform() < cfg.radar.empty_sweep_probability
                 if dropped or _in_window(cfg.scenario.empty_windows, float(t), plan.index):
                     pts = np.zeros(0, dtype=RADAR_DTYPE)

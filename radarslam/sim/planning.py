@@ -9,7 +9,7 @@ import numpy as np
 from radarslam.errors import ConfigError
 from radarslam.sim.config import SimConfig
 from radarslam.sim.ego import read_tum
-from radarslam.sim.world import StaticWorld, build_world, path_street
+from radarslam.sim.world import StaticWorld, build_world, path_street, street_polyline
 from radarslam.sim.writer import add_days, log_start, make_token
 
 
@@ -48,7 +48,8 @@ def _world_for(cfg: SimConfig) -> tuple[StaticWorld, np.ndarray | None]:
     if tum is not None:
         # The grid's streets do not follow the path: clear them off it and line the path
         # itself with a street (facades, furniture, parking) like the city's own.
-        world = _carve_corridor(world, tum[:, 1:3], city.facade_offset_m - 1.0)
+        street, _ = street_polyline(tum[:, 1:3], step_m=1.0)
+        world = _carve_corridor(world, street, city.facade_offset_m - 1.0)
         world = path_street(world, tum[:, 1:3], cfg.seed)
     return world, tum
 

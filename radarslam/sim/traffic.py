@@ -15,7 +15,15 @@ import numpy as np
 
 from radarslam.sim.config import EgoConfig, TrafficConfig
 from radarslam.sim.paths import PathSet, PathSpec, build_path
-from radarslam.sim.world import CYCLIST, MOVING_CAR, PEDESTRIAN, Boxes, StreetNetwork
+from radarslam.sim.world import (
+    CYCLIST,
+    MOVING_CAR,
+    PEDESTRIAN,
+    Boxes,
+    StreetNetwork,
+    path_end_directions,
+    standing_path,
+)
 
 _LANE_CLASS = {MOVING_CAR: 0, CYCLIST: 1, PEDESTRIAN: 2}
 #: The ego starts driving this many seconds before the drive's time 0 (first scene ~1-3 s later).
@@ -364,3 +372,143 @@ def _run(
         s = s + v * dt + 0.5 * acc * dt * dt
         v = np.maximum(v + acc * dt, 0.0)
     return TrafficSim(paths, p, t0, dt, s_hist, v_hist, a_hist, ego_index)
+
+
+#: Queue spacing of cars on a given trajectory's street (car length plus standstill gap).
+_QUEUE_SPACING_M = 7.0
+#: How far ahead and behind (in time headway) same-direction cars are placed.
+_SAME_WAY_HORIZON_S = 40.0
+
+
+class _PathLine:
+    """A driven path as a function of arc length, continued straight beyond both ends as
+    :func:`radarslam.sim.world.street_polyline` continues its street."""
+
+    def __init__(self, s: np.ndarray, xy: np.ndarray, yaw: np.ndarray):
+        self.s, self.xy, self.yaw = s, xy, yaw
+        self.end_yaw = [float(np.arctan2(d[1], d[0])) for d in path_end_directions(xy)]
+
+    def pose(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        s = np.asarray(s, dtype=np.float64)
+        xy = np.column_stack([np.interp(s, self.s, self.xy[:, k]) for k in range(2)])
+        yaw = np.interp(s, self.s, self.yaw)
+        for end, beyond in ((0, s < self.s[0]), (-1, s > self.s[-1])):
+            if np.any(beyond):
+                th = self.end_yaw[end]
+                d = np.array([np.cos(th), np.sin(th)])
+                xy[beyond] = self.xy[end] + (s[beyond] - self.s[end])[:, None] * d
+                yaw[beyond] = th
+        return xy, yaw
+
+
+@dataclass
+class PathTraffic:
+    """Cars on the street a given trajectory drives (``--trajectory``), where the city's
+    network traffic never comes: the drive's own street otherwise has no car ahead, behind or
+    oncoming, which real drives always have.
+
+    Same-way cars ride in the ego's lane as time-shifted copies of its motion (a car
+    ``tau`` s ahead is where the ego will be ``tau`` s later, plus its place in the queue): they
+    brake, stop and start with the ego as a queue at a light does, and never collide with it.
+    Oncoming cars keep a constant speed in the lane to the left of the path.
+    """
+
+    line: _PathLine
+    t_grid: np.ndarray  # the ego's arc length s(t) and speed, tabulated
+    s_grid: np.ndarray
+    v_grid: np.ndarray
+    shift_s: np.ndarray  # (A,) same-way cars: time shift (+ ahead, - behind)
+    queue_m: np.ndarray  # (A,) signed queue offset
+    oncoming_s0: np.ndarray  # (B,) arc length at t = 0
+    oncoming_v: np.ndarray  # (B,) m/s
+    oncoming_offset_m: float
+    length: np.ndarray  # (A + B,)
+    width: np.ndarray
+
+    def boxes(self, t: float) -> Boxes:
+        tq = t + self.shift_s
+        s_same = np.interp(tq, self.t_grid, self.s_grid) + self.queue_m
+        v_same = np.interp(tq, self.t_grid, self.v_grid)
+        s_on = self.oncoming_s0 - self.oncoming_v * t
+        xy_a, yaw_a = self.line.pose(s_same)
+        xy_b, yaw_b = self.line.pose(s_on)
+        left = np.column_stack([-np.sin(yaw_b), np.cos(yaw_b)])
+        xy_b = xy_b + self.oncoming_offset_m * left
+        yaw_b = yaw_b + np.pi
+        xy = np.vstack([xy_a, xy_b])
+        yaw = np.concatenate([yaw_a, yaw_b])
+        v = np.concatenate([v_same, self.oncoming_v])
+        n = len(v)
+        return Boxes(
+            xy,
+            yaw,
+            self.length,
+            self.width,
+            v[:, None] * np.column_stack([np.cos(yaw), np.sin(yaw)]),
+            np.full(n, MOVING_CAR, np.int8),
+            v < 0.1,
+            np.arange(n, dtype=np.int64) + 2_000_000,
+        )
+
+
+def path_traffic(
+    ego_fn, duration_s: float, tcfg: TrafficConfig, rng: np.random.Generator, t_end_s: float
+) -> PathTraffic:
+    """:class:`PathTraffic` for an ego driven by ``ego_fn(t) -> EgoMotion`` over
+    ``[0, duration_s]`` (held at its end states outside), at the city's car densities
+    (``car_density_per_km`` + ``route_density_per_km`` per direction)."""
+    dt = 0.05
+    t_grid = np.arange(-_SAME_WAY_HORIZON_S - 5.0, t_end_s + _SAME_WAY_HORIZON_S + 5.0, dt)
+    ego = ego_fn(np.clip(t_grid, 0.0, duration_s))
+    v = np.hypot(ego.v_fwd_mps, ego.v_lat_mps)
+    s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * dt)])
+    inside = (t_grid >= 0.0) & (t_grid <= duration_s)
+    s_in, xy_in, yaw_in = s[inside], ego.xy[inside], ego.yaw[inside]
+    moved = np.concatenate([[True], np.diff(s_in) > 1e-3])
+    s_in, xy_in, yaw_in = s_in[moved], xy_in[moved], yaw_in[moved]
+    if standing_path(xy_in):
+        # Standing still: the street runs along x through the poses (as path_street lays it).
+        c = xy_in.mean(0)
+        s_in = np.array([s_in[0] - 25.0, s_in[0] + 25.0])
+        half = np.array([25.0, 0.0])
+        xy_in = np.array([c - half, c + half])
+        yaw_in = np.zeros(2)
+    line = _PathLine(s_in, xy_in, yaw_in)
+
+    density = tcfg.car_density_per_km + tcfg.route_density_per_km
+    v_ref = 0.5 * (tcfg.car_speed_mps[0] + tcfg.car_speed_mps[1])
+    shifts, queue = [], []
+    if density > 0:
+        mean_headway_s = 1000.0 / (density * v_ref)
+        for sign in (1.0, -1.0):
+            tau, rank = 0.0, 0
+            while True:
+                tau += 1.0 + rng.exponential(mean_headway_s)
+                if tau > _SAME_WAY_HORIZON_S:
+                    break
+                rank += 1
+                shifts.append(sign * tau)
+                queue.append(sign * rank * _QUEUE_SPACING_M)
+    reach = 300.0 + tcfg.car_speed_mps[1] * t_end_s
+    lo, hi = s_in[0] - 300.0, s_in[-1] + reach
+    n_on = int(rng.poisson(tcfg.car_density_per_km * (hi - lo) / 1000.0))
+    on_s0 = rng.uniform(lo, hi, n_on)
+    on_v = rng.uniform(*tcfg.car_speed_mps, n_on)
+    n = len(shifts) + n_on
+    length = rng.uniform(4.2, 5.3, n)
+    width = rng.uniform(1.75, 2.0, n)
+    bus = rng.uniform(0, 1, n) < 0.06
+    length[bus], width[bus] = rng.uniform(9.0, 12.0, int(bus.sum())), 2.5
+    return PathTraffic(
+        line,
+        t_grid,
+        s,
+        v,
+        np.array(shifts, dtype=np.float64),
+        np.array(queue, dtype=np.float64),
+        on_s0,
+        on_v,
+        3.0,
+        length,
+        width,
+    )

@@ -627,6 +627,51 @@ def drivable_mask(world: StaticWorld, resolution_m: float) -> np.ndarray:
     return img
 
 
+#: How far the street of a given path continues past the drive's ends: the radars see ahead
+#: and behind the drive, the front unit's far scan to 220 m.
+PATH_STREET_BEYOND_M = 150.0
+
+
+def standing_path(path_xy: np.ndarray) -> bool:
+    """Whether a path stays within 2.5 m of its mean (a standing ego: no street direction)."""
+    return bool(np.linalg.norm(path_xy - path_xy.mean(0), axis=1).max() < 2.5)
+
+
+def path_end_directions(path_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions in which a path leaves its first and its last pose: from the pose 10 m
+    away (straight-line distance, or half the path's reach if shorter). A standing ego's poses
+    jitter by centimetres in every direction, which neither the last step nor the last metres
+    of arc length (jitter adds up to metres of it) can tell from a direction."""
+
+    def leaving(xy: np.ndarray) -> np.ndarray:
+        d = np.linalg.norm(xy - xy[-1], axis=1)
+        far = np.flatnonzero(d >= min(10.0, 0.5 * d.max()))
+        return _unit(xy[-1] - xy[far[-1]])
+
+    return -leaving(path_xy[::-1]), leaving(path_xy)
+
+
+def street_polyline(
+    path_xy: np.ndarray, step_m: float, beyond_m: float = PATH_STREET_BEYOND_M
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(points, s)``: points every ``step_m`` along the street a path drives and their arc
+    length from the path's start (negative before it), continued straight for ``beyond_m``
+    past both ends (:func:`path_end_directions`). A standing path (:func:`standing_path`)
+    drives a 50 m street along x through its poses."""
+    if standing_path(path_xy):
+        centre, half = path_xy.mean(0), np.array([25.0, 0.0])
+        path_xy = np.array([centre - half, centre + half])
+    step = np.linalg.norm(np.diff(path_xy, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    d0, d1 = path_end_directions(path_xy)
+    s = np.arange(-beyond_m, cum[-1] + beyond_m + 1e-9, step_m)
+    inside = np.clip(s, 0.0, cum[-1])
+    pts = np.column_stack([np.interp(inside, cum, path_xy[:, k]) for k in range(2)])
+    pts = pts + np.minimum(s, 0.0)[:, None] * d0 + np.maximum(s - cum[-1], 0.0)[:, None] * d1
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 0.05 * step_m])
+    return pts[keep], s[keep]
+
+
 def path_street(
     world: StaticWorld, path_xy: np.ndarray, seed: int, keep_clear_m: float = 3.5
 ) -> StaticWorld:
@@ -638,21 +683,7 @@ def path_street(
 
     cfg = world.config
     rng = np.random.default_rng([seed, 111])
-    step = np.linalg.norm(np.diff(path_xy, axis=0), axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(step)])
-    if cum[-1] < 5.0:  # standing still: a short street along x through the poses
-        centre, half = path_xy.mean(0), np.array([25.0, 0.0])
-        path_xy = np.array([centre - half, centre + half])
-        cum = np.array([0.0, 50.0])
-    # Extend the street 40 m beyond both ends: a radar sees ahead and behind the drive.
-    d0 = _unit(path_xy[min(1, len(path_xy) - 1)] - path_xy[0] + 1e-9)
-    d1 = _unit(path_xy[-1] - path_xy[max(len(path_xy) - 2, 0)] + 1e-9)
-    s = np.arange(-40.0, cum[-1] + 40.0 + 1e-9, 15.0)
-    inside = np.clip(s, 0.0, cum[-1])
-    pts = np.column_stack([np.interp(inside, cum, path_xy[:, k]) for k in range(2)])
-    pts = pts + np.minimum(s, 0.0)[:, None] * d0 + np.maximum(s - cum[-1], 0.0)[:, None] * d1
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1.0])
-    pts, s = pts[keep], s[keep]
+    pts, s = street_polyline(path_xy, step_m=15.0)
     b = _CityBuilder(cfg, rng, world.network)
     slots_xy, slots_yaw = [], []
     off = cfg.facade_offset_m

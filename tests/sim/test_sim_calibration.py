@@ -14,7 +14,15 @@ from radarslam.sim.config import RadarConfig, load_sim_config
 from radarslam.sim.generate import simulate
 from radarslam.sim.planning import plan_logs
 from radarslam.sim.radar import NUSCENES_MOUNTS, RadarModel, SweepWorld, mounting_errors
-from radarslam.sim.world import Boxes, Scatterers, StaticWorld, build_world, path_street
+from radarslam.sim.world import (
+    PATH_STREET_BEYOND_M,
+    Boxes,
+    Scatterers,
+    StaticWorld,
+    build_world,
+    path_street,
+    street_polyline,
+)
 
 VERSION = "v1.0-mini"
 SHORT = ["schedule.scenes_per_log=1", "schedule.scene_duration_s=3.0", "traffic.warmup_s=5.0"]
@@ -231,18 +239,39 @@ def test_a_given_trajectory_is_lined_with_a_street():
     assert isinstance(lined, StaticWorld)
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(path)
     new = lined.scatterers.xy[len(world.scatterers) :]
-    d = tree.query(new)[0]
     assert len(new) > 50
-    assert d.min() > 3.5
+    assert cKDTree(path).query(new)[0].min() > 3.5
+    # The street goes on past both ends of the drive (the radars see 100-220 m ahead).
+    street, _ = street_polyline(path, step_m=1.0)
+    along_x = new[:, 0]
+    assert along_x.min() < 100 - 130 and along_x.max() > 400 + 130
+    tree = cKDTree(street)
+    d = tree.query(new)[0]
     # Facades on both sides at the street's facade offset, parking slots along the kerb.
     off = cfg.city.facade_offset_m
     assert np.mean(np.abs(d - off) < 3.0) > 0.3
     slots = lined.parking.xy[len(world.parking.xy) :]
     assert len(slots) > 0
-    # (slots on the street's extensions past the path's ends lie farther from the path)
     assert np.mean(np.abs(tree.query(slots)[0] - 4.7) < 1.0) > 0.8
+
+
+def test_a_standing_ego_does_not_turn_its_street():
+    # Driving 30 m along x, then standing for 10 s: the ground truth jitters by centimetres in
+    # every direction, and the street must still go on along x.
+    rng = np.random.default_rng(0)
+    drive = np.column_stack([np.linspace(0.0, 30.0, 60), np.zeros(60)])
+    stand = np.array([30.0, 0.0]) + rng.normal(0.0, 0.03, (130, 2))
+    pts, s = street_polyline(np.vstack([drive, stand]), step_m=5.0)
+    for part in (pts[s > s.max() - 100.0], pts[s < -10.0]):
+        dx, dy = part[-1] - part[0]
+        assert abs(np.degrees(np.arctan2(dy, abs(dx)))) < 1.0  # the jitter: 3 cm in 10 m
+    assert pts[:, 0].max() == pytest.approx(30.0 + PATH_STREET_BEYOND_M, abs=2.0)
+    assert pts[:, 0].min() == pytest.approx(-PATH_STREET_BEYOND_M, abs=0.1)
+    # Standing all along: a 50 m street along x through the poses, continued as well.
+    pts, s = street_polyline(np.array([5.0, 7.0]) + rng.normal(0.0, 0.03, (50, 2)), step_m=5.0)
+    assert np.abs(pts[:, 1] - 7.0).max() < 0.1
+    assert pts[:, 0].max() - pts[:, 0].min() == pytest.approx(50.0 + 2 * PATH_STREET_BEYOND_M)
 
 
 def test_trajectory_scene_starts_at_the_first_pose():
@@ -257,3 +286,52 @@ def test_trajectory_scene_starts_at_the_first_pose():
 
 def test_nuscenes_mounts_cover_every_channel():
     assert {m.channel for m in NUSCENES_MOUNTS} == set(mounting_errors(RadarConfig(), 0))
+
+
+def _braking_drive_tum() -> np.ndarray:
+    """25 s: 10 m/s along a gentle left curve, braking to a stop at 14 s, standing after."""
+    t = np.arange(0.0, 25.0, 0.1)
+    v = np.clip(10.0 - 2.5 * np.clip(t - 10.0, 0.0, None), 0.0, None)
+    s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * 0.1)])
+    yaw = 0.004 * s
+    x = np.concatenate([[0.0], np.cumsum(np.cos(yaw[:-1]) * np.diff(s))])
+    y = np.concatenate([[0.0], np.cumsum(np.sin(yaw[:-1]) * np.diff(s))])
+    z = np.zeros_like(t)
+    return np.column_stack([t, x, y, z, z, z, np.sin(yaw / 2), np.cos(yaw / 2)])
+
+
+def test_cars_on_a_given_trajectorys_street_queue_with_the_ego():
+    from radarslam.sim.config import TrafficConfig
+    from radarslam.sim.ego import TumEgo
+    from radarslam.sim.traffic import path_traffic
+
+    ego = TumEgo(_braking_drive_tum())
+    tcfg = TrafficConfig(car_density_per_km=25.0)
+    traffic = path_traffic(ego.ego, ego.duration_s, tcfg, np.random.default_rng(4), 25.0)
+    again = path_traffic(ego.ego, ego.duration_s, tcfg, np.random.default_rng(4), 25.0)
+    n_same = len(traffic.shift_s)
+    assert n_same >= 4 and len(traffic.oncoming_v) >= 4
+    assert (traffic.shift_s > 0).any() and (traffic.shift_s < 0).any()  # ahead and behind
+    seen_ahead_standing = 0
+    for t in np.arange(0.0, 25.0, 0.25):
+        boxes = traffic.boxes(float(t))
+        np.testing.assert_array_equal(boxes.xy, again.boxes(float(t)).xy)
+        e = ego.ego(np.array([t]))
+        heading = np.array([np.cos(e.yaw[0]), np.sin(e.yaw[0])])
+        rel = boxes.xy - e.xy[0]
+        # Same-way cars: in the ego's lane, never closer than a queue gap, never faster.
+        same = slice(0, n_same)
+        assert np.linalg.norm(rel[same], axis=1).min() > 5.0
+        assert np.hypot(*boxes.velocity[same].T).max() <= 10.05  # the spline rings 0.1 %
+        if t > 15.0:  # the ego stands: the queue ahead of it stands too
+            near_ahead = (rel[same] @ heading > 0) & (np.linalg.norm(rel[same], axis=1) < 40.0)
+            assert np.all(boxes.stopped[same][near_ahead])
+            seen_ahead_standing += int(near_ahead.sum())
+        # Oncoming cars: opposite heading, in the lane to the left of the path.
+        on = slice(n_same, None)
+        close = np.linalg.norm(rel[on], axis=1) < 15.0
+        left = np.array([-heading[1], heading[0]])
+        if np.any(close):
+            np.testing.assert_allclose(rel[on][close] @ left, 3.0, atol=0.5)
+            assert np.all(boxes.velocity[on][close] @ heading < -5.0)
+    assert seen_ahead_standing > 0
