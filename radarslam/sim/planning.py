@@ -9,7 +9,7 @@ import numpy as np
 from radarslam.errors import ConfigError
 from radarslam.sim.config import SimConfig
 from radarslam.sim.ego import read_tum
-from radarslam.sim.world import StaticWorld, build_world, path_street, street_polyline
+from radarslam.sim.world import StaticWorld, build_world, path_street
 from radarslam.sim.writer import add_days, log_start, make_token
 
 
@@ -46,45 +46,10 @@ def _world_for(cfg: SimConfig) -> tuple[StaticWorld, np.ndarray | None]:
         )
     world = build_world(city, cfg.seed, cfg.traffic.light_cycle_s)
     if tum is not None:
-        # The grid's streets do not follow the path: clear them off it and line the path
-        # itself with a street (facades, furniture, parking) like the city's own.
-        street, _ = street_polyline(tum[:, 1:3], step_m=1.0)
-        world = _carve_corridor(world, street, city.facade_offset_m - 1.0)
+        # The grid's streets do not follow the path: line the path itself with a street like
+        # the city's own, cleared of the grid's buildings.
         world = path_street(world, tum[:, 1:3], cfg.seed)
     return world, tum
-
-
-def _carve_corridor(world: StaticWorld, xy: np.ndarray, half_width: float) -> StaticWorld:
-    from scipy.spatial import cKDTree
-
-    seg = np.diff(xy, axis=0)
-    n = np.maximum(np.ceil(np.linalg.norm(seg, axis=1) / 0.5).astype(int), 1)
-    dense = np.vstack(
-        [xy[i] + np.linspace(0, 1, k, endpoint=False)[:, None] * seg[i] for i, k in enumerate(n)]
-        + [xy[-1:]]
-    )
-    tree = cKDTree(dense)
-    keep_sc = tree.query(world.scatterers.xy)[0] > half_width
-
-    def seg_keep(s):
-        if len(s) == 0:
-            return np.zeros(0, bool)
-        t = np.linspace(0, 1, 9)
-        pts = s[:, None, :2] + t[None, :, None] * (s[:, None, 2:] - s[:, None, :2])
-        d = tree.query(pts.reshape(-1, 2))[0].reshape(len(s), -1)
-        return d.min(1) > half_width
-
-    occ, refl = world.occluders, world.reflectors
-    return StaticWorld(
-        world.config,
-        world.network,
-        world.scatterers.subset(keep_sc),
-        occ[seg_keep(occ)],
-        refl[seg_keep(refl)],
-        world.parking,
-        world.buildings,
-        world.bounds,
-    )
 
 
 def plan_logs(cfg: SimConfig, duration_s: float | None = None) -> list[LogPlan]:

@@ -9,6 +9,7 @@ position, heading, speed and yaw rate of every agent are exact at any timestamp.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -452,7 +453,11 @@ class PathTraffic:
 
 
 def path_traffic(
-    ego_fn, duration_s: float, tcfg: TrafficConfig, rng: np.random.Generator, t_end_s: float
+    ego_fn: Callable[[np.ndarray], EgoMotion],
+    duration_s: float,
+    tcfg: TrafficConfig,
+    rng: np.random.Generator,
+    t_end_s: float,
 ) -> PathTraffic:
     """:class:`PathTraffic` for an ego driven by ``ego_fn(t) -> EgoMotion`` over
     ``[0, duration_s]`` (held at its end states outside), at the city's car densities

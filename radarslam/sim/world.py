@@ -672,21 +672,64 @@ def street_polyline(
     return pts[keep], s[keep]
 
 
+def carve_corridor(world: StaticWorld, lines: list[np.ndarray], half_width: float) -> StaticWorld:
+    """``world`` without what stands within ``half_width`` of the polylines ``lines``:
+    scatterers, occluders, reflectors and parking slots."""
+    from scipy.spatial import cKDTree
+
+    dense = []
+    for xy in lines:
+        seg = np.diff(xy, axis=0)
+        n = np.maximum(np.ceil(np.linalg.norm(seg, axis=1) / 0.5).astype(int), 1)
+        dense += [
+            xy[i] + np.linspace(0, 1, k, endpoint=False)[:, None] * seg[i] for i, k in enumerate(n)
+        ]
+        dense.append(xy[-1:])
+    tree = cKDTree(np.vstack(dense))
+
+    def clear_of(xy: np.ndarray) -> np.ndarray:
+        if len(xy) == 0:
+            return np.zeros(0, bool)
+        return np.asarray(tree.query(xy)[0] > half_width)
+
+    def seg_keep(segs: np.ndarray) -> np.ndarray:
+        if len(segs) == 0:
+            return np.zeros(0, bool)
+        t = np.linspace(0, 1, 9)
+        pts = segs[:, None, :2] + t[None, :, None] * (segs[:, None, 2:] - segs[:, None, :2])
+        return np.asarray(clear_of(pts.reshape(-1, 2)).reshape(len(segs), -1).all(1))
+
+    p = world.parking
+    k = clear_of(p.xy)
+    return StaticWorld(
+        world.config,
+        world.network,
+        world.scatterers.subset(clear_of(world.scatterers.xy)),
+        world.occluders[seg_keep(world.occluders)],
+        world.reflectors[seg_keep(world.reflectors)],
+        ParkingSlots(p.xy[k], p.yaw[k], p.long_term[k], p.lt_len[k], p.lt_wid[k], p.lt_flip[k]),
+        world.buildings,
+        world.bounds,
+    )
+
+
 def path_street(
     world: StaticWorld, path_xy: np.ndarray, seed: int, keep_clear_m: float = 3.5
 ) -> StaticWorld:
-    """``world`` plus a street that follows ``path_xy``: facades, street furniture and parking
-    slots on both sides, so a drive along a given trajectory passes the near, repeatable
-    structure a drive along the city's own streets does. Nothing is left within
+    """``world`` with a street that follows ``path_xy`` (:func:`street_polyline`), cleared of
+    what stood there and lined as the city's own streets are: facades, street furniture and
+    parking slots on both sides, so a drive along a given trajectory passes the near,
+    repeatable structure a drive along the city's own streets does. Nothing is left within
     ``keep_clear_m`` of the path (the inside of tight turns)."""
     from scipy.spatial import cKDTree
 
     cfg = world.config
     rng = np.random.default_rng([seed, 111])
     pts, s = street_polyline(path_xy, step_m=15.0)
+    off = cfg.facade_offset_m
+    world = carve_corridor(world, [street_polyline(path_xy, step_m=1.0)[0]], off - 1.0)
     b = _CityBuilder(cfg, rng, world.network)
     slots_xy, slots_yaw = [], []
-    off = cfg.facade_offset_m
     # Cross streets one block apart, as on the city's own streets: open views down them.
     cross = np.cumsum(rng.uniform(cfg.block_min_m, cfg.block_max_m, int(s[-1] - s[0]) // 50 + 2))
     cross = s[0] + cross - rng.uniform(0.0, cfg.block_max_m)

@@ -20,6 +20,7 @@ from radarslam.sim.world import (
     Scatterers,
     StaticWorld,
     build_world,
+    carve_corridor,
     path_street,
     street_polyline,
 )
@@ -239,19 +240,28 @@ def test_a_given_trajectory_is_lined_with_a_street():
     assert isinstance(lined, StaticWorld)
     from scipy.spatial import cKDTree
 
-    new = lined.scatterers.xy[len(world.scatterers) :]
+    # The city is cleared off the street, parking slots included, along its whole length.
+    off = cfg.city.facade_offset_m
+    street, _ = street_polyline(path, step_m=1.0)
+    tree = cKDTree(street)
+    carved = carve_corridor(world, [street], off - 1.0)
+    assert len(carved.scatterers) < len(world.scatterers)
+    assert len(carved.parking.xy) < len(world.parking.xy)
+    assert tree.query(carved.scatterers.xy)[0].min() > off - 1.0
+    assert tree.query(carved.parking.xy)[0].min() > off - 1.0
+    np.testing.assert_array_equal(
+        lined.scatterers.xy[: len(carved.scatterers)], carved.scatterers.xy
+    )
+    new = lined.scatterers.xy[len(carved.scatterers) :]
     assert len(new) > 50
     assert cKDTree(path).query(new)[0].min() > 3.5
     # The street goes on past both ends of the drive (the radars see 100-220 m ahead).
-    street, _ = street_polyline(path, step_m=1.0)
     along_x = new[:, 0]
     assert along_x.min() < 100 - 130 and along_x.max() > 400 + 130
-    tree = cKDTree(street)
     d = tree.query(new)[0]
     # Facades on both sides at the street's facade offset, parking slots along the kerb.
-    off = cfg.city.facade_offset_m
     assert np.mean(np.abs(d - off) < 3.0) > 0.3
-    slots = lined.parking.xy[len(world.parking.xy) :]
+    slots = lined.parking.xy[len(carved.parking.xy) :]
     assert len(slots) > 0
     assert np.mean(np.abs(tree.query(slots)[0] - 4.7) < 1.0) > 0.8
 
