@@ -81,6 +81,16 @@ class RegistrationConfig(StrictModel):
     #: Largest Aitken extrapolation of a refinement step (1 = plain Gauss-Newton): the local-mean
     #: target moves with the point, so plain steps shrink geometrically.
     refine_max_extrapolation: float = Field(8.0, ge=1.0)
+    #: Where the yaw of the motion since the last accepted registration is uncertain by more
+    #: than this (1 sigma; after the twist was held through an outage), the registration is
+    #: seeded at yaw offsets over +-3 sigma (at most +-20 deg, yaw_search_step_deg apart); an
+    #: alignment that matches more than 2 source points more than the one from the usual seed
+    #: replaces it (of those, the one with the lowest residual). A registration's yaw barely
+    #: leaves its seed: after a 1 s outage ending a real 84 deg turn (scene-0916) the held yaw
+    #: rate had turned the pose 8 deg too far, and seeded there the scan stayed 8 deg off for
+    #: good. None: off.
+    yaw_search_sigma_deg: float | None = Field(1.5, gt=0)
+    yaw_search_step_deg: float = Field(1.5, gt=0, le=10)
 
 
 class CalibrationConfig(StrictModel):

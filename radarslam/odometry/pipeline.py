@@ -238,6 +238,8 @@ def _fuse_cov(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 #: chi-square, 3 dof, 99.9 %: a static-rule twist closer than this to 0 is taken as exactly 0
 #: (at 99 % one stopped frame in a hundred would integrate its noise).
 _ZERO_VELOCITY_CHI2 = 16.27
+#: Widest yaw search (each side): beyond it a scan's few points match anywhere somewhat.
+_YAW_SEARCH_MAX_RAD = np.deg2rad(20.0)
 
 
 def _chi2(x: np.ndarray, cov: np.ndarray) -> float:
@@ -440,6 +442,8 @@ class RadarOdometry:
         self._fused_yaw_rate: float | None = None
         self._stopped = False
         self._last_icp_cov: np.ndarray | None = None
+        #: Covariance of the motion since the last accepted registration (body frame).
+        self._unregistered_cov = np.zeros((3, 3))
         self._rejections = 0
         self._kf = _Interval()
         self._kf_started = False
@@ -718,6 +722,9 @@ class RadarOdometry:
                 + delta_cov
             )
             self._cross = ad @ self._cross + jc @ self._calib_cov
+            if not (stopped and self._stopped):
+                # (standing, the pose is held exactly: nothing moves it against the map)
+                self._unregistered_cov = _sym(ad @ self._unregistered_cov @ ad.T + delta_cov)
 
         reg_result: RegistrationResult | None = None
         status = "first" if first else "doppler"
@@ -732,7 +739,7 @@ class RadarOdometry:
             source, frame_down = reg.voxelize(points)
             predicted = pose
             if not first and not reg.empty and len(source) >= cfg.registration.min_source_points:
-                reg_result = reg.align(source, self._registration_seed(predicted, gap_s))
+                reg_result = self._align(reg, source, self._registration_seed(predicted, gap_s))
                 icp_cov = _sym(reg_result.covariance) * cfg.fusion.icp_cov_scale
                 frac = cfg.fusion.icp_along_track_sigma_fraction
                 if frac is not None and fit.valid:
@@ -750,6 +757,8 @@ class RadarOdometry:
 
         if not accepted:
             icp_cov = None
+        else:
+            self._unregistered_cov = np.zeros((3, 3))
         if first:
             rel_cov = np.zeros((3, 3))
         elif accepted and self._last_icp_cov is not None:
@@ -815,6 +824,18 @@ class RadarOdometry:
             key_frame_motion=kf_motion,
             key_frame_covariance=kf_cov,
         )
+
+    def _align(
+        self, reg: ScanToMapRegistration, source: np.ndarray, seed: np.ndarray
+    ) -> RegistrationResult:
+        """The registration from ``seed``, searched over yaw where the motion since the last
+        accepted registration leaves the yaw uncertain (``registration.yaw_search_sigma_deg``)."""
+        rc = self.config.registration
+        sigma = float(np.sqrt(max(self._unregistered_cov[2, 2], 0.0)))
+        if rc.yaw_search_sigma_deg is None or sigma <= np.deg2rad(rc.yaw_search_sigma_deg):
+            return reg.align(source, seed)
+        half = min(3.0 * sigma, _YAW_SEARCH_MAX_RAD)
+        return reg.align_over_yaw(source, seed, half, np.deg2rad(rc.yaw_search_step_deg))
 
     def _registration_seed(self, predicted: np.ndarray, gap_s: float) -> np.ndarray:
         """The registration's initial pose (``registration.seed_yaw_rate``): the Doppler

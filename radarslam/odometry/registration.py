@@ -108,6 +108,25 @@ class ScanToMapRegistration:
         cov, matched, rms = self._covariance(source, pose, 3.0 * sigma)
         return RegistrationResult(pose, cov, len(source), matched, rms, sigma)
 
+    def align_over_yaw(
+        self, source: np.ndarray, initial_guess: np.ndarray, half_width_rad: float, step_rad: float
+    ) -> RegistrationResult:
+        """:meth:`align` from seeds turned by yaw offsets over ``+-half_width_rad``, ``step_rad``
+        apart. The alignment from ``initial_guess`` itself stands unless another matches more
+        than 2 source points more; then, of those within 2 of the most, the one with the lowest
+        residual (a scan turned off its place matches fewer points, and those more loosely).
+        Against a map of a frame or two every turn matches about as well, and the guess wins."""
+        n = int(np.ceil(half_width_rad / step_rad))
+        results = [
+            self.align(source, planar(initial_guess @ exp_se2(np.array([0.0, 0.0, k * step_rad]))))
+            for k in range(-n, n + 1)
+        ]
+        most = max(r.num_matched for r in results)
+        if results[n].num_matched >= most - 2:
+            return results[n]
+        near = [r for r in results if r.num_matched >= most - 2 and np.isfinite(r.residual_rms_m)]
+        return min(near, key=lambda r: r.residual_rms_m) if near else results[n]
+
     def update(self, frame_points: np.ndarray, world_from_ego: np.ndarray) -> None:
         """Add ego-frame points at the pose."""
         if len(frame_points):

@@ -54,22 +54,24 @@ class DopplerHealth:
             self.points += int(fit.num_points)
 
     def problem(self) -> str | None:
-        """Why the Doppler of this scene is implausible, or ``None``."""
+        """Why the Doppler of this scene is implausible (each reason that applies), or
+        ``None``."""
         if not self.frames:
             return None
+        reasons = []
         share = self.valid / self.frames
         if share < MIN_VALID_DOPPLER_SHARE:
-            return (
+            reasons.append(
                 f"only {self.valid} of {self.frames} frames have a valid Doppler fit "
                 f"({share:.0%}; expected at least {MIN_VALID_DOPPLER_SHARE:.0%})"
             )
-        ratio = self.inliers / self.points if self.points else 0.0
-        if ratio < MIN_DOPPLER_INLIER_SHARE:
-            return (
+        ratio = self.inliers / self.points if self.points else None
+        if ratio is not None and ratio < MIN_DOPPLER_INLIER_SHARE:
+            reasons.append(
                 f"the Doppler fits keep only {ratio:.0%} of their points as static-world inliers "
                 f"(expected at least {MIN_DOPPLER_INLIER_SHARE:.0%}; corrupt radial velocities?)"
             )
-        return None
+        return "; ".join(reasons) or None
 
 
 @dataclass

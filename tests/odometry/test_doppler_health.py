@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import shutil
 
 import numpy as np
@@ -40,8 +41,9 @@ def test_garbage_doppler_is_said_once_per_scene(tiny_dataroot, tmp_path, caplog)
     messages = said()
     assert len(messages) == len(names), messages
     for name, msg in zip(names, messages, strict=True):
-        assert msg.startswith(f"scene {name}: the Doppler fits keep only ")
-        assert "static-world inliers" in msg and "unreliable" in msg
+        # (a scene may also have too few valid fits: both reasons are then given)
+        assert msg.startswith(f"scene {name}: ") and msg.endswith("its odometry is unreliable")
+        assert re.search(r"the Doppler fits keep only [0-9]% of their points as static-world", msg)
 
 
 class _Fit:
@@ -58,6 +60,18 @@ def test_doppler_health_thresholds():
     for _ in range(11):
         h.add(_Fit(False, 0, 50))
     assert h.problem().startswith("only 10 of 21 frames have a valid Doppler fit")
+    assert "inliers" not in h.problem()
+    for _ in range(5):
+        h.add(_Fit(True, 1, 1000))
+        h.add(_Fit(False, 0, 50))
+        h.add(_Fit(False, 0, 50))
+    both = h.problem()
+    assert both.startswith("only 15 of 36 frames") and "; the Doppler fits keep only 13% " in both
+    none_valid = DopplerHealth()
+    none_valid.add(_Fit(False, 0, 50))
+    assert none_valid.problem() == (
+        "only 0 of 1 frames have a valid Doppler fit (0%; expected at least 50%)"
+    )
     assert DopplerHealth().problem() is None  # no frame with points: nothing to say
 
 

@@ -338,6 +338,37 @@ def test_braking_through_a_one_second_outage_is_pulled_back_by_the_registration(
     assert abs(along_track_error(55)) < 0.15, along_track_error(55)
 
 
+def test_a_turn_ending_in_an_outage_is_found_again_by_the_yaw_search(world):
+    """All radars silent for 1 s while a 25 deg/s turn ends: the held yaw rate turns the pose
+    on by about 10 deg. Seeded there, the registration stays where it starts; searched over the
+    held motion's yaw uncertainty (registration.yaw_search_sigma_deg) it finds the heading."""
+    rng = np.random.default_rng(13)
+
+    def yaw_rate(t):
+        return np.deg2rad(25.0) if 1.0 <= t < 3.3 else 0.0
+
+    frames = drive(
+        world, rng, num_frames=75, speed_mps=8.0, yaw_rate_radps=yaw_rate, empty=(36, 49), **NOISE
+    )
+
+    def yaw_error_deg(results, k):
+        return float(
+            np.degrees(log_se2(invert(frames[k].world_from_ego) @ results[k].world_from_ego)[2])
+        )
+
+    searched = run("ours", frames)
+    off = OdometryConfig().model_copy(deep=True)
+    off.registration.yaw_search_sigma_deg = None
+    held = run("ours", frames, off)
+    assert_sane(searched)
+    assert yaw_error_deg(searched, 48) == pytest.approx(yaw_error_deg(held, 48))
+    assert yaw_error_deg(held, 48) > 8.0  # pinned: the hold overturned by 10.3 deg
+    assert abs(yaw_error_deg(searched, 60)) < 0.5, yaw_error_deg(searched, 60)  # pinned: 0.13
+    assert yaw_error_deg(held, 60) > 10.0, yaw_error_deg(held, 60)  # pinned: 12.2, for good
+    # Only the frame after the hold was searched: elsewhere one registration per frame.
+    assert yaw_error_deg(searched, 30) == pytest.approx(yaw_error_deg(held, 30))
+
+
 def test_traffic_jam_half_the_points_moving(world):
     rng = np.random.default_rng(6)
     frames = drive(

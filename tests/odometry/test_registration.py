@@ -187,3 +187,32 @@ def test_refinement_ignores_points_at_the_edge_of_the_map():
     inside = reg._refine(scan, start, 2.1, 0.7)
     both = reg._refine(with_edge, start, 2.1, 0.7)
     np.testing.assert_array_equal(both, inside)
+
+
+def test_yaw_search_finds_a_scan_turned_beyond_the_registrations_reach():
+    # Scattered reflectors (posts, corners) around the vehicle; the scan is the map seen from a
+    # pose 9 deg and 0.3 m off the seed, as after an outage whose held yaw rate overturned.
+    rng = np.random.default_rng(7)
+    cloud = rng.uniform(-60, 60, (400, 2))
+    cloud = cloud[np.hypot(*cloud.T) > 4.0]
+    truth = exp_se2(np.array([0.3, -0.2, np.deg2rad(9.0)]))
+    scan = (cloud - truth[:2, 3]) @ truth[:2, :2]  # ego-frame points of the truth
+    scan = scan[np.hypot(*scan.T) < 50.0]
+    scan = scan + rng.normal(0, 0.05, scan.shape)
+    source = np.column_stack([scan, np.zeros(len(scan))])
+    reg = _registration(cloud, max_num_iterations=5, refine=3, extrapolation=8.0)
+
+    def yaw_deg(result):
+        return float(
+            np.degrees(np.arctan2(result.world_from_ego[1, 0], result.world_from_ego[0, 0]))
+        )
+
+    plain = reg.align(source, np.eye(4))
+    searched = reg.align_over_yaw(source, np.eye(4), np.deg2rad(15.0), np.deg2rad(1.5))
+    assert abs(yaw_deg(searched) - 9.0) < 0.3
+    np.testing.assert_allclose(searched.world_from_ego[:2, 3], [0.3, -0.2], atol=0.1)
+    assert searched.num_matched > plain.num_matched
+    assert abs(yaw_deg(plain) - 9.0) > 2.0  # the plain alignment stays near its seed
+    # A search of zero width is the plain alignment.
+    same = reg.align_over_yaw(source, np.eye(4), 0.0, np.deg2rad(1.5))
+    np.testing.assert_array_equal(same.world_from_ego, plain.world_from_ego)
