@@ -149,6 +149,15 @@ _RADAR_ROWS: tuple[tuple[str, str, str, str], ...] = (
         "3",
     ),
     ("radar_redetect_3", "... within the next 3 sweeps", "redetection.per_radar_within", "3"),
+    ("radar_range_p50", "range p50 (m)", "points.per_radar_range_p50_m", "1"),
+    ("radar_range_p90", "range p90 (m)", "points.per_radar_range_p90_m", "1"),
+    ("radar_rcs_p50", "RCS p50 (dBsm)", "points.per_radar_rcs_p50_dbsm", "dB"),
+    (
+        "radar_moving",
+        "points the Doppler fit marks moving",
+        "points.per_radar_moving_fraction",
+        "%",
+    ),
 )
 
 

@@ -379,28 +379,44 @@ def doppler_drive(scenes: Sequence[SceneRecord]) -> DopplerDrive:
 
 @dataclass
 class PointDistribution:
-    """Range and RCS of the filtered points, and the share the Doppler fit calls moving."""
+    """Range and RCS of the filtered points, and the share the Doppler fit calls moving; over
+    every radar, and per radar (the side-looking corner units see other things)."""
 
     num_points: int
     range_m: dict[str, float]  # p10, p50, p90
     rcs_dbsm: dict[str, float]  # p10, p50, p90
     moving_fraction: float  # of the points of sweeps with a valid fit: not Doppler-static
+    per_radar_range_p50_m: dict[str, float] = field(default_factory=dict)
+    per_radar_range_p90_m: dict[str, float] = field(default_factory=dict)
+    per_radar_rcs_p50_dbsm: dict[str, float] = field(default_factory=dict)
+    per_radar_moving_fraction: dict[str, float] = field(default_factory=dict)
 
 
-def point_distribution(scenes: Sequence[SceneRecord]) -> PointDistribution:
-    sweeps = [s for s in _all_sweeps(scenes) if len(s)]
+def _distribution(sweeps: Sequence[SweepRecord]) -> tuple[np.ndarray, np.ndarray, float]:
+    """(ranges, RCS levels, moving fraction) of the points of ``sweeps``."""
+    sweeps = [s for s in sweeps if len(s)]
     if not sweeps:
-        return PointDistribution(0, _percentiles(np.zeros(0)), _percentiles(np.zeros(0)), math.nan)
+        return np.zeros(0), np.zeros(0), math.nan
     rng = np.concatenate([np.hypot(s.xyz[:, 0], s.xyz[:, 1]) for s in sweeps])
     rcs = np.concatenate([s.rcs for s in sweeps])
     fitted = [s for s in sweeps if s.fitted]
     n_fit = sum(len(s) for s in fitted)
     moving = sum(len(s) - int(s.static.sum()) for s in fitted)
+    return rng, rcs, (moving / n_fit if n_fit else math.nan)
+
+
+def point_distribution(scenes: Sequence[SceneRecord]) -> PointDistribution:
+    rng, rcs, moving = _distribution(_all_sweeps(scenes))
+    per = {ch: _distribution(_all_sweeps(scenes, ch)) for ch in RADAR_CHANNELS}
     return PointDistribution(
         num_points=len(rng),
         range_m=_percentiles(rng),
         rcs_dbsm=_percentiles(rcs),
-        moving_fraction=moving / n_fit if n_fit else float("nan"),
+        moving_fraction=moving,
+        per_radar_range_p50_m={ch: _percentiles(d[0], (50,))["p50"] for ch, d in per.items()},
+        per_radar_range_p90_m={ch: _percentiles(d[0], (90,))["p90"] for ch, d in per.items()},
+        per_radar_rcs_p50_dbsm={ch: _percentiles(d[1], (50,))["p50"] for ch, d in per.items()},
+        per_radar_moving_fraction={ch: d[2] for ch, d in per.items()},
     )
 
 

@@ -75,6 +75,13 @@ def test_redetection_moves_points_with_the_poses():
     )
     assert d.num_points == 7 and d.moving_fraction == pytest.approx(4 / 6)
     assert d.range_m["p50"] == pytest.approx(20.0)  # of 1.4, 10, 10.2, 20, 21.1, 25, 30
+    # per radar: the same figures of one radar's sweeps; a radar without points has none
+    assert d.per_radar_range_p50_m["RADAR_FRONT"] == pytest.approx(20.0)
+    assert d.per_radar_range_p90_m["RADAR_FRONT"] == pytest.approx(27.0)
+    assert d.per_radar_moving_fraction["RADAR_FRONT"] == pytest.approx(4 / 6)
+    assert d.per_radar_rcs_p50_dbsm["RADAR_FRONT"] == 0.0
+    assert math.isnan(d.per_radar_range_p50_m["RADAR_BACK_LEFT"])
+    assert math.isnan(d.per_radar_moving_fraction["RADAR_BACK_LEFT"])
 
 
 def test_scene_drive_integrates_the_fit_against_the_ground_truth():
@@ -116,6 +123,16 @@ def test_statistics_pinned_on_tiny(tiny_dataroot):
     assert (p.rcs_dbsm["p10"], p.rcs_dbsm["p50"], p.rcs_dbsm["p90"]) == (-3.0, 6.0, 16.0)
     assert p.moving_fraction == pytest.approx(0.07487, abs=1e-4)
     assert c.per_radar_mean["RADAR_BACK_LEFT"] == pytest.approx(63.852, abs=1e-3)
+    assert p.per_radar_range_p50_m["RADAR_FRONT_LEFT"] == pytest.approx(21.896, abs=1e-2)
+    assert p.per_radar_range_p90_m["RADAR_BACK_RIGHT"] == pytest.approx(99.825, abs=1e-2)
+    assert (
+        p.per_radar_rcs_p50_dbsm["RADAR_FRONT"],
+        p.per_radar_rcs_p50_dbsm["RADAR_FRONT_RIGHT"],
+    ) == (
+        6.5,
+        9.0,
+    )
+    assert p.per_radar_moving_fraction["RADAR_FRONT_RIGHT"] == pytest.approx(0.09951, abs=1e-4)
 
     # independent recount from the files: every sweep of every radar, once
     filt = odometry_inputs()[0]
