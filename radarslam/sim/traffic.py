@@ -375,8 +375,10 @@ def _run(
     return TrafficSim(paths, p, t0, dt, s_hist, v_hist, a_hist, ego_index)
 
 
-#: Queue spacing of cars on a given trajectory's street (car length plus standstill gap).
-_QUEUE_SPACING_M = 7.0
+#: Bumper to bumper at a standstill, in the queue on a given trajectory's street.
+_STANDSTILL_GAP_M = 2.0
+#: The ego's bumpers from its rear axle (nuScenes' car: the front radar sits at 3.41 m).
+_EGO_FRONT_M, _EGO_REAR_M = 3.5, 0.7
 #: How far ahead and behind (in time headway) same-direction cars are placed.
 _SAME_WAY_HORIZON_S = 40.0
 
@@ -409,8 +411,9 @@ class PathTraffic:
     oncoming, which real drives always have.
 
     Same-way cars ride in the ego's lane as time-shifted copies of its motion (a car
-    ``tau`` s ahead is where the ego will be ``tau`` s later, plus its place in the queue): they
-    brake, stop and start with the ego as a queue at a light does, and never collide with it.
+    ``tau`` s ahead is where the ego will be ``tau`` s later, plus its place in the queue,
+    bumper to bumper 2 m apart at a standstill): they brake, stop and start with the ego as a
+    queue at a light does, and never touch it or each other.
     Oncoming cars keep a constant speed in the lane to the left of the path.
     """
 
@@ -482,18 +485,16 @@ def path_traffic(
 
     density = tcfg.car_density_per_km + tcfg.route_density_per_km
     v_ref = 0.5 * (tcfg.car_speed_mps[0] + tcfg.car_speed_mps[1])
-    shifts, queue = [], []
+    shifts = []  # ahead, nearest first, then behind, nearest first
     if density > 0:
         mean_headway_s = 1000.0 / (density * v_ref)
         for sign in (1.0, -1.0):
-            tau, rank = 0.0, 0
+            tau = 0.0
             while True:
                 tau += 1.0 + rng.exponential(mean_headway_s)
                 if tau > _SAME_WAY_HORIZON_S:
                     break
-                rank += 1
                 shifts.append(sign * tau)
-                queue.append(sign * rank * _QUEUE_SPACING_M)
     reach = 300.0 + tcfg.car_speed_mps[1] * t_end_s
     lo, hi = s_in[0] - 300.0, s_in[-1] + reach
     n_on = int(rng.poisson(tcfg.car_density_per_km * (hi - lo) / 1000.0))
@@ -504,13 +505,20 @@ def path_traffic(
     width = rng.uniform(1.75, 2.0, n)
     bus = rng.uniform(0, 1, n) < 0.06
     length[bus], width[bus] = rng.uniform(9.0, 12.0, int(bus.sum())), 2.5
+    # Each car's place in the queue (its centre from the ego's rear axle at a standstill):
+    # bumper to bumper, whatever the cars' lengths.
+    queue = np.zeros(len(shifts))
+    for sign, edge in ((1.0, _EGO_FRONT_M), (-1.0, _EGO_REAR_M)):
+        for i in (i for i, tau in enumerate(shifts) if np.sign(tau) == sign):
+            queue[i] = sign * (edge + _STANDSTILL_GAP_M + 0.5 * length[i])
+            edge += _STANDSTILL_GAP_M + length[i]
     return PathTraffic(
         line,
         t_grid,
         s,
         v,
         np.array(shifts, dtype=np.float64),
-        np.array(queue, dtype=np.float64),
+        queue,
         on_s0,
         on_v,
         3.0,

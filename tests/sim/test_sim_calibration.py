@@ -329,9 +329,17 @@ def test_cars_on_a_given_trajectorys_street_queue_with_the_ego():
         e = ego.ego(np.array([t]))
         heading = np.array([np.cos(e.yaw[0]), np.sin(e.yaw[0])])
         rel = boxes.xy - e.xy[0]
-        # Same-way cars: in the ego's lane, never closer than a queue gap, never faster.
+        # Same-way cars: in the ego's lane, bumpers at least 2 m apart (the ego's 3.5 m ahead of
+        # its rear axle and 0.7 m behind it; buses are 9-12 m long), never faster than the ego.
         same = slice(0, n_same)
-        assert np.linalg.norm(rel[same], axis=1).min() > 5.0
+        along = rel[same] @ heading
+        half = 0.5 * boxes.length[same]
+        ahead = along > 0
+        assert np.all(along[ahead] - half[ahead] - 3.5 > 1.9)
+        assert np.all(-along[~ahead] - half[~ahead] - 0.7 > 1.9)
+        order = np.argsort(along)
+        centres = np.linalg.norm(np.diff(boxes.xy[same][order], axis=0), axis=1)
+        assert (centres - half[order][1:] - half[order][:-1]).min() > 1.9
         assert np.hypot(*boxes.velocity[same].T).max() <= 10.05  # the spline rings 0.1 %
         if t > 15.0:  # the ego stands: the queue ahead of it stands too
             near_ahead = (rel[same] @ heading > 0) & (np.linalg.norm(rel[same], axis=1) < 40.0)
