@@ -24,6 +24,7 @@ from radarslam.sim.world import (
     StreetNetwork,
     path_end_directions,
     standing_path,
+    standing_street,
 )
 
 _LANE_CLASS = {MOVING_CAR: 0, CYCLIST: 1, PEDESTRIAN: 2}
@@ -475,11 +476,9 @@ def path_traffic(
     moved = np.concatenate([[True], np.diff(s_in) > 1e-3])
     s_in, xy_in, yaw_in = s_in[moved], xy_in[moved], yaw_in[moved]
     if standing_path(xy_in):
-        # Standing still: the street runs along x through the poses (as path_street lays it).
-        c = xy_in.mean(0)
-        s_in = np.array([s_in[0] - 25.0, s_in[0] + 25.0])
-        half = np.array([25.0, 0.0])
-        xy_in = np.array([c - half, c + half])
+        # Standing still: the street of street_polyline, along x through the poses.
+        xy_in = standing_street(xy_in)
+        s_in = s_in[0] + np.array([-0.5, 0.5]) * np.linalg.norm(xy_in[1] - xy_in[0])
         yaw_in = np.zeros(2)
     line = _PathLine(s_in, xy_in, yaw_in)
 

@@ -637,6 +637,12 @@ def standing_path(path_xy: np.ndarray) -> bool:
     return bool(np.linalg.norm(path_xy - path_xy.mean(0), axis=1).max() < 2.5)
 
 
+def standing_street(path_xy: np.ndarray) -> np.ndarray:
+    """(2, 2) ends of the street a standing path stands in: 50 m along x through its poses."""
+    centre, half = path_xy.mean(0), np.array([25.0, 0.0])
+    return np.array([centre - half, centre + half])
+
+
 def path_end_directions(path_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit directions in which a path leaves its first and its last pose: from the pose 10 m
     away (straight-line distance, or half the path's reach if shorter). A standing ego's poses
@@ -659,8 +665,7 @@ def street_polyline(
     past both ends (:func:`path_end_directions`). A standing path (:func:`standing_path`)
     drives a 50 m street along x through its poses."""
     if standing_path(path_xy):
-        centre, half = path_xy.mean(0), np.array([25.0, 0.0])
-        path_xy = np.array([centre - half, centre + half])
+        path_xy = standing_street(path_xy)
     step = np.linalg.norm(np.diff(path_xy, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(step)])
     d0, d1 = path_end_directions(path_xy)
