@@ -228,6 +228,11 @@ class RadarModel:
         self.cfg = cfg
         self.gain_db = float(cfg.channel_gain_db.get(channel, 0.0)) if channel else 0.0
         self.clutter_scale = float(cfg.channel_clutter_scale.get(channel, 1.0)) if channel else 1.0
+        self.near_rolloff_db = float(
+            cfg.channel_near_rolloff_db.get(channel, cfg.near_rolloff_db)
+            if channel
+            else cfg.near_rolloff_db
+        )
         self.bin_w = np.deg2rad(0.25)
         self.lim = np.deg2rad(cfg.near_fov_deg + 1.0)
         self.n_bins = int(np.ceil(2 * self.lim / self.bin_w))
@@ -459,7 +464,7 @@ class RadarModel:
         # Sensitivity time control: near-range gain is held down, so weak near clutter (leaves,
         # kerbs) does not swamp the cluster list.
         path = -40.0 * np.log10(np.maximum(r, cfg.stc_range_m) / 100.0)
-        g_near = cfg.near_gain_db - 10.0 * (az / np.deg2rad(cfg.near_fov_deg)) ** 2
+        g_near = cfg.near_gain_db - self.near_rolloff_db * (az / np.deg2rad(cfg.near_fov_deg)) ** 2
         g_far = np.where(
             in_far, cfg.far_gain_db - 3.0 * (az / np.deg2rad(cfg.far_fov_deg)) ** 2, -np.inf
         )
@@ -575,6 +580,8 @@ class RadarModel:
         out["x"], out["y"] = x32, y32
         out["vx"], out["vy"] = v32[:, 0], v32[:, 1]
         out["vx_comp"], out["vy_comp"] = v_comp[:, 0], v_comp[:, 1]
+        if cfg.gain_biases_rcs:
+            rcs = rcs + self.gain_db
         rq = noise.rcs_quantum_db
         out["rcs"] = np.round(rcs / rq) * rq if rq > 0 else rcs
         # dyn_prop from the compensated Doppler (what the sensor itself can know).

@@ -137,3 +137,46 @@ def test_mount_rotation_matches_scipy_euler():
     m = RadarMount("RADAR_X", 1.0, 2.0, 0.5, 30.0, 1.5, -2.0)
     want = Rotation.from_euler("xyz", [1.5, -2.0, 30.0], degrees=True).as_matrix()
     np.testing.assert_allclose(m.ego_from_sensor()[:3, :3], want, atol=1e-12)
+
+
+def _pole_at(range_m: float, az_deg: float, rcs: float):
+    a = np.deg2rad(az_deg)
+    return _make([[range_m * np.cos(a), range_m * np.sin(a)]], rcs, POLE)
+
+
+def test_front_corner_units_lose_gain_and_report_it_in_their_rcs():
+    """The corner units' 5 dB loss lowers their SNR and, as a unit computing RCS with its
+    nominal gain does, the RCS they report; the front unit sees the same pole at its RCS."""
+    cfg = _quiet(rcs_spread_db=0.0, rcs_quantum_db=0.0)
+    front, corner = RadarModel(cfg, "RADAR_FRONT"), RadarModel(cfg, "RADAR_FRONT_LEFT")
+    world = _world(_pole_at(20.0, 0.0, 20.0))
+    rng = np.random.default_rng(0)
+    v = np.array([5.0, 0.0])
+    rcs_front = [
+        float(p) for _ in range(20) for p in front.sweep(world, np.zeros(2), 0, v, rng)["rcs"]
+    ]
+    rcs_corner = [
+        float(p) for _ in range(20) for p in corner.sweep(world, np.zeros(2), 0, v, rng)["rcs"]
+    ]
+    assert rcs_front and rcs_corner
+    assert np.median(rcs_front) - np.median(rcs_corner) == pytest.approx(5.0, abs=0.01)
+    unbiased = RadarModel(cfg.model_copy(update={"gain_biases_rcs": False}), "RADAR_FRONT_LEFT")
+    rcs = [
+        float(p) for _ in range(20) for p in unbiased.sweep(world, np.zeros(2), 0, v, rng)["rcs"]
+    ]
+    assert np.median(rcs) == pytest.approx(np.median(rcs_front), abs=0.01)
+
+
+def test_front_corner_units_have_a_narrower_near_beam():
+    """A weak pole 50 deg off boresight at 30 m: seen by the front unit most of the time, hardly
+    by a corner unit (30 dB of loss at the near scan's edge instead of 10); on boresight both
+    see it."""
+    cfg = _quiet()
+    front, corner = RadarModel(cfg, "RADAR_FRONT"), RadarModel(cfg, "RADAR_FRONT_LEFT")
+    off = _world(_pole_at(30.0, 50.0, 5.0))
+    on = _world(_pole_at(30.0, 0.0, 5.0))
+    assert _detect_rate(front, off) > 0.8
+    assert _detect_rate(corner, off) < 0.2
+    assert _detect_rate(front, on) > 0.8 and _detect_rate(corner, on) > 0.8
+    wide = RadarModel(cfg.model_copy(update={"channel_near_rolloff_db": {}}), "RADAR_FRONT_LEFT")
+    assert _detect_rate(wide, off) > 0.5  # the same 5 dB loss with the common beam
