@@ -1,12 +1,25 @@
-"""Session-wide fixtures: the synthetic ``tiny`` dataroot (generated once) and config helpers."""
+"""Session-wide fixtures: the synthetic ``tiny`` dataroot (generated once), config helpers and
+SIGINT as Ctrl-C delivers it."""
 
 from __future__ import annotations
 
 import hashlib
+import signal
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _sigint_raises_keyboard_interrupt():
+    """The Ctrl-C tests need SIGINT to raise KeyboardInterrupt, here and in the processes they
+    start. A test runner started in the background of a non-interactive shell inherits SIGINT
+    ignored (POSIX), and Python then installs no handler; a handled signal is reset to the
+    default in child processes, an ignored one stays ignored."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
 
 
 def sim_config(preset: str = "tiny", overrides: list[str] | None = None):
