@@ -134,9 +134,10 @@ def rebuild_with_false_loops(pipeline, fraction: float, rng, robust: str = "cauc
     return graph.optimize_batch()
 
 
-def stale_keys(dataroot: Path, overrides: list[str]) -> list[str]:
+def stale_keys(dataroot: Path, overrides: list[str], preset: str = "city") -> list[str]:
     """The simulator settings (dotted keys, with the stored and the current value) where the
-    city in ``dataroot`` differs from what the run would generate now (jobs aside)."""
+    city in ``dataroot`` differs from what ``preset`` with ``overrides`` would generate now
+    (jobs aside)."""
     import yaml
 
     from radarslam.sim.config import load_sim_config
@@ -151,7 +152,7 @@ def stale_keys(dataroot: Path, overrides: list[str]) -> list[str]:
         return out
 
     stored = flat(yaml.safe_load((dataroot / "synthetic" / "config.yaml").read_text()) or {})
-    now = flat(load_sim_config("city", overrides).model_dump(mode="json"))
+    now = flat(load_sim_config(preset, overrides).model_dump(mode="json"))
     return [
         f"{k}: {stored.get(k)!r} there, {now.get(k)!r} now"
         for k in sorted(set(stored) | set(now))

@@ -20,6 +20,8 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
             ["--set", "loops.no_such_key=1", "--dataroot", "{tmp}/city", "--out", "{tmp}/out"],
             "no_such_key",
         ),
+        ("slam_settings.py", ["--set", "loops.no_such_key=1", "--out", "{tmp}/out"], "no_such_key"),
+        ("slam_settings.py", ["--runs", "long,s8", "--out", "{tmp}/out"], "--runs"),
         ("odometry.py", ["--dataroot", "{tmp}/none"], "no such folder"),
         ("odometry.py", ["--doppler-seeds", "0"], "--doppler-seeds"),
         ("realism.py", ["--set", "world.x=1", "--work", "{tmp}/work"], "world"),
@@ -63,3 +65,8 @@ def test_a_bench_city_from_another_simulator_config_is_named(tmp_path):
     assert bench.stale_keys(tmp_path, overrides) == [
         f"radar.noise.doppler_scale_error: 0.0 there, {now!r} now"
     ]
+    # The demo preset's world is judged against the demo preset, not the city's.
+    stored = yaml.safe_load(dump_config(load_sim_config("demo", [])))
+    (tmp_path / "synthetic" / "config.yaml").write_text(yaml.safe_dump(stored))
+    assert bench.stale_keys(tmp_path, [], preset="demo") == []
+    assert "city.n_blocks_x" in " ".join(bench.stale_keys(tmp_path, []))

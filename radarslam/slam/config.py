@@ -29,12 +29,6 @@ class KeyFrameConfig(StrictModel):
     #: A verification local map is the key frame's cloud plus this many neighbours on each side
     #: (only past ones for the query, which has no future yet), placed with odometry.
     local_map_neighbors: int = Field(4, ge=0, le=50)
-    #: The candidate's neighbours in its verification local map: "centred" (both sides),
-    #: "past" (earlier ones only, as for the query), or "past_if_reversed": past when the map
-    #: (or odometry) predicts a revisit the other way round, centred otherwise. Static-looking
-    #: clutter follows each drive's path, so centred maps of a turned revisit overlap two paths
-    #: in opposite lanes and the registration pulls them together.
-    candidate_map: Literal["centred", "past", "past_if_reversed"] = "past_if_reversed"
     #: Which dynamic-point removal cleans the key-frame clouds: the odometry's joint Doppler fit
     #: of every frame (free: it is already computed) or AutoPlace's DPR run again per sweep
     #: (Algorithm 1 of the paper, as the place-recognition training data was made).
@@ -57,12 +51,6 @@ class LoopDetectionConfig(StrictModel):
     exclude_recent_s: float = Field(30.0, ge=0.0)
     #: After an accepted loop, the next this-many key frames of the session skip loop search.
     min_key_frames_between_loops: int = Field(4, ge=0)
-    #: AutoPlace (and the turned search) query a key frame only this far (odometry) from the
-    #: session's last queried one: a stopped car sees one place, and querying it at every key
-    #: frame gives a look-alike one more chance per key frame to pass verification with no new
-    #: evidence. 0: every key frame. At 1 m (one odometry pass) seed 7's SLAM ATE is 0.46 m
-    #: against 1.54 m, but the city subset's recall falls from 0.833 to 0.660.
-    recognition_min_travel_m: float = Field(0.0, ge=0.0)
     #: When odometry (same session) or the map (both sessions placed) predicts the relative pose,
     #: verification searches only this far around the prediction, at its heading: ~4x cheaper
     #: than the global search, and a false match elsewhere cannot be accepted.
@@ -87,8 +75,8 @@ class LoopDetectionConfig(StrictModel):
     proximity_min_tight_fitness: float = Field(0.08, ge=0.0, le=1.0)
     #: Proximity registrations drop points with fewer than this many others within 0.5 m in
     #: their local map (the verifier's ``min_neighbors``; None: the verifier's setting): clutter
-    #: is single returns, a reflector's are repeated. Global registrations and confirmations
-    #: keep every point (their thresholds were set with the clutter in).
+    #: is single returns, a reflector's are repeated. Global registrations keep every point
+    #: (their thresholds were set with the clutter in).
     proximity_min_neighbors: int | None = Field(2, ge=0)
     #: Between two sessions already in the map, a verified loop that moves the query farther than
     #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
@@ -112,10 +100,6 @@ class LoopDetectionConfig(StrictModel):
     #: tests and session linking. False: off.
     reversed_search: bool = True
     reversed_every: int = Field(6, ge=1)
-    #: After this many reversed searches of a session without an accepted loop its interval
-    #: doubles, and after twice as many doubles again (at most 4x): a session that has not met
-    #: the map the other way round for a while is likely elsewhere. None: a fixed interval.
-    reversed_backoff_searches: int | None = Field(8, ge=1)
     reversed_heading_range_deg: float = Field(60.0, gt=0, le=360)
     #: A new session joins the map only after this many loops agree on where it is: placed by
     #: each loop, the loops' key frames land within ``link_consistency_m`` of each other (and

@@ -58,13 +58,6 @@ class Proposal:
     hint: np.ndarray | None = None  # where the search starts without a prediction
 
 
-def moved(last_xy: np.ndarray | None, kf: KeyFrame, min_travel_m: float) -> bool:
-    """Whether ``kf`` lies ``min_travel_m`` (odometry) from ``last_xy`` (None: nothing yet)."""
-    if last_xy is None:
-        return True
-    return bool(np.hypot(*(kf.odometry_pose[:2, 3] - last_xy)) >= min_travel_m)
-
-
 class CandidateProposer(Protocol):
     def propose(
         self, session: Session, kf: KeyFrame, cloud: AccumulatedCloud, closed: bool
@@ -95,10 +88,7 @@ class RecognitionProposer:
         t0 = time.perf_counter()
         desc, rcs = rec.describe(self.state.sequence(session, cloud, rec.seq_len))
         candidates = []
-        if kf.key.index - session.last_loop_kf > cfg.min_key_frames_between_loops and moved(
-            session.last_query_xy, kf, cfg.recognition_min_travel_m
-        ):
-            session.last_query_xy = kf.odometry_pose[:2, 3].copy()
+        if kf.key.index - session.last_loop_kf > cfg.min_key_frames_between_loops:
             candidates = rec.query_descriptor(
                 desc, rcs, k=cfg.num_candidates, exclude=self.state.excluded(kf)
             )
@@ -128,33 +118,25 @@ class TurnedProposer:
     with the key frame's image sequence turned by 180 deg, i.e. as the street looks driven the
     other way round, against the key frames of sessions not linked to it yet; the best match is
     verified by the translation search over headings near 180 deg (``loops.reversed_search``).
-    It searches every ``reversed_every``-th key frame, less often after repeated misses."""
+    It searches every ``reversed_every``-th key frame."""
 
     def __init__(
         self, config: SlamConfig, state: MapState, recognizer: Callable, timings: SlamTimings
     ) -> None:
         self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
-        self._searched: NodeKey | None = None
 
     def propose(self, session, kf, cloud, closed):
-        self._searched = None
         cfg = self.config.loops
         if closed or not cfg.reversed_search:
             return []
-        interval = cfg.reversed_every
-        if cfg.reversed_backoff_searches is not None:
-            interval <<= min(session.reversed_misses // cfg.reversed_backoff_searches, 2)
         if (
             self.state.groups[session.group].in_map
             or kf.key.index < self.config.key_frames.local_map_neighbors
-            or kf.key.index - session.last_reversed_kf < interval
+            or kf.key.index - session.last_reversed_kf < cfg.reversed_every
             or kf.key.index - session.last_loop_kf <= cfg.min_key_frames_between_loops
-            or not moved(session.last_reversed_xy, kf, cfg.recognition_min_travel_m)
         ):
             return []
         session.last_reversed_kf = kf.key.index
-        session.last_reversed_xy = kf.odometry_pose[:2, 3].copy()
-        self._searched = kf.key
         t0 = time.perf_counter()
         rec = self.recognizer()
         sequence = self.state.sequence(session, cloud, rec.seq_len)
@@ -179,8 +161,7 @@ class TurnedProposer:
         ]
 
     def settle(self, session, kf, accepted):
-        if self._searched == kf.key:
-            session.reversed_misses = 0 if accepted else session.reversed_misses + 1
+        pass
 
 
 class ProximityProposer:

@@ -69,10 +69,6 @@ class Session:
     world_from_session: np.ndarray | None = None  # where the chain was put in the map
     last_loop_kf: int = -(10**9)
     last_reversed_kf: int = -(10**9)  # the last key frame that ran the turned search
-    reversed_misses: int = 0  # turned searches since the last accepted one
-    #: odometry positions of the last key frames queried by AutoPlace / the turned search
-    last_query_xy: np.ndarray | None = None
-    last_reversed_xy: np.ndarray | None = None
     timestamps_us: list[int] = field(default_factory=list)  # of the key frames, increasing
     #: the dataset log (one vehicle's one drive) the scene was cut from; "" when unknown
     log: str = ""

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from radarslam.geometry import invert, wrap_angle, yaw_of
+from radarslam.geometry import invert, wrap_angle
 from radarslam.io.loops import LoopCandidate, LoopVerification
 from radarslam.slam.state import KeyFrame, MapState
 
@@ -139,19 +139,10 @@ class Verification:
             return self._chained(query, last)
         return state.groups[qs.group].from_session[qs.name] @ query.odometry_pose
 
-    def candidate_past(self, guess: np.ndarray | None) -> bool:
-        """Whether the candidate's local map takes its past key frames only
-        (``key_frames.candidate_map``), given the predicted candidate_from_query or None."""
-        mode = self.config.key_frames.candidate_map
-        if mode == "past_if_reversed":
-            return guess is not None and abs(yaw_of(guess)) > np.pi / 2
-        return mode == "past"
-
     def _register(
-        self, verifier, query: KeyFrame, cand: KeyFrame, distance: float, guess, start
+        self, verifier, query: KeyFrame, cand: KeyFrame, distance: float, start
     ) -> tuple[LoopCandidate, LoopVerification]:
         state = self.state
-        cand_past = self.candidate_past(guess)
         return verifier.verify_candidate(
             query.key,
             cand.key,
@@ -159,9 +150,9 @@ class Verification:
             cand.timestamp_us,
             distance,
             state.local_map(query, past_only=True),
-            state.local_map(cand, past_only=cand_past),
+            state.local_map(cand, past_only=False),
             start,
-            cache_keys=(state.map_key(query, True), state.map_key(cand, cand_past)),
+            cache_keys=(state.map_key(query, True), state.map_key(cand, False)),
         )
 
     def check(
@@ -182,7 +173,7 @@ class Verification:
         else:
             ver_ = getattr(self.verifiers, verifier)
         start = guess if guess is not None else hint
-        record, ver = self._register(ver_, query, cand, distance, guess, start)
+        record, ver = self._register(ver_, query, cand, distance, start)
         record = replace(record, source=source)
         if guess is not None and cand.key.session != query.key.session:
             # The guess came from the map (or the group): a pose far from it is a look-alike.

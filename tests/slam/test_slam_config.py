@@ -20,17 +20,26 @@ def test_unknown_key_frame_reference_fails_before_any_data_is_read():
         load_config(SlamConfig, None, ["key_frames.ref_channel=RADAR_TOP"])
 
 
-def test_removed_link_options_are_unknown_keys():
-    """Confirmations of lone votes and weak votes are gone (never decisive on the calibrated
-    world): an old config naming them fails on the key, not silently."""
-    for key in ("loops.confirm_max_checks=0", "loops.weak_vote_min_tight_fitness=null"):
-        with pytest.raises(ConfigError, match=key.split("=")[0].split(".")[1]):
-            load_config(SlamConfig, None, [key])
+@pytest.mark.parametrize(
+    "key",
+    [
+        # confirmations of lone votes and weak votes: never decisive on the calibrated world
+        "loops.confirm_max_checks=0",
+        "loops.weak_vote_min_tight_fitness=null",
+        # past-only candidate maps for turned revisits, the turned search's back-off, the
+        # travel gate on AutoPlace queries: no better, or worse, on the calibrated world
+        "key_frames.candidate_map=centred",
+        "loops.reversed_backoff_searches=8",
+        "loops.recognition_min_travel_m=1",
+    ],
+)
+def test_removed_options_are_unknown_keys(key):
+    """An old config naming a removed option fails on the key, not silently."""
+    with pytest.raises(ConfigError, match=key.split("=")[0].split(".")[1]):
+        load_config(SlamConfig, None, [key])
 
 
-def test_candidate_map_and_proximity_persistence_are_checked():
-    with pytest.raises(ConfigError, match=r"key_frames.candidate_map"):
-        load_config(SlamConfig, None, ["key_frames.candidate_map=future"])
+def test_proximity_persistence_is_checked():
     with pytest.raises(ConfigError, match=r"loops.proximity_min_neighbors"):
         load_config(SlamConfig, None, ["loops.proximity_min_neighbors=-1"])
     off = load_config(SlamConfig, None, ["loops.proximity_min_neighbors=null"])

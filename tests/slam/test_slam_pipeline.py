@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from itertools import pairwise
 
 import numpy as np
@@ -592,7 +593,6 @@ def test_reversed_search_queries_turned_images_of_sessions_outside_the_map(
 ):
     cfg = SlamConfig()
     cfg.loops.reversed_every = 2
-    cfg.loops.reversed_backoff_searches = 3
     rec = recognizer()
     turned_tokens = []
     describe = rec.describe
@@ -615,9 +615,8 @@ def test_reversed_search_queries_turned_images_of_sessions_outside_the_map(
         assert lp.query.session == second and lp.candidate.session == first
         assert lp.query.index >= cfg.key_frames.local_map_neighbors
         assert lp.reason
-    for misses, (prev, lp) in enumerate(pairwise(searched)):
-        # every 2nd key frame, every 4th after 3 misses, every 8th after 6
-        assert lp.query.index - prev.query.index >= 2 << min((misses + 1) // 3, 2)
+    # every 2nd key frame, however many searches missed before
+    assert {lp.query.index - prev.query.index for prev, lp in pairwise(searched)} == {2}
 
 
 def test_reversed_search_can_be_switched_off(reader, scenes, recognizer):
@@ -815,30 +814,25 @@ def test_a_proximity_loop_far_from_its_prediction_is_rejected(
         assert record.reason == f"{slide_m:.1f} m / 0 deg from the map's prediction"
 
 
-def test_candidate_local_map_is_past_only_when_the_map_predicts_a_turned_revisit(reader, scenes):
-    # Two drives of a street in opposite lanes: where both local maps cover the same stretch,
-    # each one's path-following clutter attracts the other's path (docs/results.md, settings
-    # table), so a turned revisit registers against the candidate's past key frames only.
-    cfg = SlamConfig()
-    cfg.loops.enabled = False
-    pipeline = SlamPipeline(reader, cfg, progress=False)
-    pipeline.run(scenes)
+def test_the_query_map_is_past_only_and_the_candidate_map_centred(reader, scenes):
+    # The query has no future yet; the candidate's neighbours on both sides cover its place
+    # from both directions (past-only candidate maps for turned revisits measured no better on
+    # the calibrated world: docs/results.md, settings table).
+    cfg = SlamConfig(pipelined=False)
+    cfg.loops.reversed_search = False
+    pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
+    calls = []
+    local_map = pipeline.state.local_map
+    pipeline.state.local_map = lambda kf, past_only: (
+        calls.append((kf.key, past_only)) or (local_map(kf, past_only))
+    )
+    res = pipeline.run(scenes)
+    assert res.loops
+    # one (query, candidate) pair of maps per verification
+    pairs = Counter(zip(calls[0::2], calls[1::2], strict=True))
+    assert pairs == Counter(((lp.query, True), (lp.candidate, False)) for lp in res.loops)
     kf = pipeline.key_frames(scenes[0])[6]
-    past, centred = (len(pipeline.state.local_map(kf, past_only=p)) for p in (True, False))
-    assert past < centred
-    turned, ahead = se2_to_matrix(1.0, 3.0, np.pi - 0.2), se2_to_matrix(1.0, 0.0, 0.2)
-    expected = {
-        "past_if_reversed": {"turned": True, "ahead": False, "unknown": False},
-        "centred": {"turned": False, "ahead": False, "unknown": False},
-        "past": {"turned": True, "ahead": True, "unknown": True},
-    }
-    for mode, cases in expected.items():
-        pipeline.config.key_frames.candidate_map = mode
-        got = {
-            name: pipeline.verification.candidate_past(guess)
-            for name, guess in (("turned", turned), ("ahead", ahead), ("unknown", None))
-        }
-        assert got == cases, mode
+    assert len(local_map(kf, True)) < len(local_map(kf, False))
 
 
 @pytest.mark.parametrize("min_neighbors", [2, None])
@@ -993,35 +987,16 @@ class _CountingQueries(_AllCandidates):
         return []
 
 
-def _queried_indices(kfs, travel_m):
-    """The key frames each at least ``travel_m`` (odometry) from the last one queried."""
-    out, last = [], None
-    for i, kf in enumerate(kfs):
-        p = kf.odometry_pose[:2, 3]
-        if last is None or np.hypot(*(p - last)) >= travel_m:
-            out.append(i)
-            last = p
-    return out
-
-
-@pytest.mark.parametrize("travel_m", [0.0, 4.0, 1e4])
-def test_a_place_is_queried_again_only_after_the_car_moved(reader, scenes, travel_m):
+def test_autoplace_queries_every_key_frame_until_a_loop_is_accepted(reader, scenes):
+    # Spacing (min_key_frames_between_loops) starts at an accepted loop only; a stopped car
+    # is queried at every key frame as a moving one is.
     cfg = SlamConfig(pipelined=False)
-    cfg.loops.recognition_min_travel_m = travel_m
     cfg.loops.reversed_search = False
     counting = _CountingQueries()
     pipeline = SlamPipeline(reader, cfg, recognizer=counting, progress=False)
-    pipeline.run(scenes)
-    kfs = {n: pipeline.key_frames(n) for n in scenes}
-    expected = sum(len(_queried_indices(k, travel_m)) for k in kfs.values())
-    assert counting.queries == expected
-    every = sum(len(k) for k in kfs.values())
-    if travel_m == 0.0:
-        assert expected == every
-    elif travel_m == 4.0:
-        assert len(scenes) < expected < every
-    else:
-        assert expected == len(scenes)  # each session's first key frame only
+    res = pipeline.run(scenes)
+    assert not res.accepted_loops
+    assert counting.queries == sum(len(pipeline.key_frames(n)) for n in scenes)
 
 
 @pytest.mark.parametrize("continue_log_scenes", [True, False])
