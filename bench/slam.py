@@ -92,6 +92,26 @@ def odometry_baseline(reader, scenes, config) -> dict:
     }
 
 
+def write_and_evaluate(folder: Path, result, plots: bool):
+    """Write a SLAM result's folder and evaluate it (``radarslam eval``'s defaults): the
+    report."""
+    from radarslam.config import CONFIG_DIR, load_config
+    from radarslam.eval.evaluate import EvalConfig, evaluate_results
+    from radarslam.slam.outputs import write_results
+
+    write_results(
+        folder,
+        result.sessions,
+        result.loops,
+        result.static_map,
+        plots=plots,
+        components=[c.sessions for c in result.components],
+        continues=result.continues,
+    )
+    eval_cfg = load_config(EvalConfig, CONFIG_DIR / "eval" / "default.yaml")
+    return evaluate_results(folder, eval_cfg.model_copy(update={"plots": plots}))
+
+
 def rebuild_with_false_loops(pipeline, fraction: float, rng, robust: str = "cauchy"):
     """The pipeline's final graph (same chains, placements and loops) plus injected false loops;
     batch-optimised. Returns {NodeKey: pose}."""
@@ -249,11 +269,9 @@ def main() -> None:
             setattr(args, name, value)
 
     from radarslam.config import CONFIG_DIR, load_config
-    from radarslam.eval.evaluate import EvalConfig, evaluate_results
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.sim.generate import is_complete, simulate
     from radarslam.slam.config import SlamConfig
-    from radarslam.slam.outputs import write_results
     from radarslam.slam.pipeline import SlamPipeline
 
     # A bad --set is found before minutes of city generation, not after.
@@ -290,16 +308,7 @@ def main() -> None:
     result = pipeline.run(scenes)
     wall = time.perf_counter() - t0
     cpu = cpu_s() - c0
-    write_results(
-        args.out,
-        result.sessions,
-        result.loops,
-        result.static_map,
-        plots=True,
-        components=[c.sessions for c in result.components],
-        continues=result.continues,
-    )
-    report = evaluate_results(args.out, load_config(EvalConfig, CONFIG_DIR / "eval/default.yaml"))
+    report = write_and_evaluate(args.out, result, plots=True)
     loops = report.loops.as_dict() if report.loops is not None else {}
 
     # The odometry at SLAM's key frames: the samples its key-frame gate kept (the odometry is the

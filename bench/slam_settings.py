@@ -157,10 +157,8 @@ def run_one(run: str, overrides: list[str], folder: Path) -> dict:
     import numpy as np
 
     from radarslam.config import CONFIG_DIR, load_config
-    from radarslam.eval.evaluate import EvalConfig, evaluate_results
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.slam.config import SlamConfig
-    from radarslam.slam.outputs import write_results
     from radarslam.slam.pipeline import SlamPipeline
 
     bench_slam = sibling_bench("slam")
@@ -171,17 +169,7 @@ def run_one(run: str, overrides: list[str], folder: Path) -> dict:
     t0 = time.perf_counter()
     result = SlamPipeline(reader, config, progress=False).run(scenes)
     wall = time.perf_counter() - t0
-    write_results(
-        folder,
-        result.sessions,
-        result.loops,
-        result.static_map,
-        plots=False,
-        components=[c.sessions for c in result.components],
-        continues=result.continues,
-    )
-    eval_cfg = load_config(EvalConfig, CONFIG_DIR / "eval" / "default.yaml")
-    loops = evaluate_results(folder, eval_cfg.model_copy(update={"plots": False})).loops
+    loops = bench_slam.write_and_evaluate(folder, result, plots=False).loops
     assert loops is not None  # a SLAM folder always has loops.csv
     anchored = next(c for c in result.components if c.anchored)
     in_map = [s for s in result.sessions if s.name in set(anchored.sessions)]
