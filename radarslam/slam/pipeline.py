@@ -17,7 +17,7 @@
       (:class:`~radarslam.slam.loop_closure.LoopVerifier`); every candidate, accepted or not, is
       logged with the reason;
    e. **reversed search**, for a session outside the map when recognition closed nothing: every
-      ``reversed_every``-th key frame (less often after repeated misses) queries AutoPlace with
+      ``reversed_every``-th key frame queries AutoPlace with
       its images turned by 180 deg against the key frames of sessions not linked to it yet, and
       the best match is verified over headings near a half turn: how a street driven the other
       way round is found;
