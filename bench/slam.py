@@ -92,6 +92,24 @@ def odometry_baseline(reader, scenes, config) -> dict:
     }
 
 
+def generation_overrides(
+    logs: int,
+    routes: int,
+    scenes_per_log: int | None = None,
+    scene_duration_s: float | None = None,
+    scene_gap_s: tuple[float, float] | None = None,
+) -> list[str]:
+    """The city preset's ``--set`` overrides for a run's schedule (None: the preset's)."""
+    overrides = [f"schedule.n_logs={logs}", f"schedule.n_routes={routes}"]
+    if scenes_per_log is not None:
+        overrides.append(f"schedule.scenes_per_log={scenes_per_log}")
+    if scene_duration_s is not None:
+        overrides.append(f"schedule.scene_duration_s={scene_duration_s}")
+    if scene_gap_s is not None:
+        overrides.append(f"schedule.scene_gap_s=[{scene_gap_s[0]}, {scene_gap_s[1]}]")
+    return overrides
+
+
 def write_and_evaluate(folder: Path, result, plots: bool):
     """Write a SLAM result's folder and evaluate it (``radarslam eval``'s defaults): the
     report."""
@@ -276,13 +294,9 @@ def main() -> None:
 
     # A bad --set is found before minutes of city generation, not after.
     config = load_config(SlamConfig, CONFIG_DIR / "slam" / f"{args.preset}.yaml", args.set)
-    overrides = [f"schedule.n_logs={args.logs}", f"schedule.n_routes={args.routes}"]
-    if args.scenes_per_log is not None:
-        overrides.append(f"schedule.scenes_per_log={args.scenes_per_log}")
-    if args.scene_duration_s is not None:
-        overrides.append(f"schedule.scene_duration_s={args.scene_duration_s}")
-    if args.scene_gap_s is not None:
-        overrides.append(f"schedule.scene_gap_s=[{args.scene_gap_s[0]}, {args.scene_gap_s[1]}]")
+    overrides = generation_overrides(
+        args.logs, args.routes, args.scenes_per_log, args.scene_duration_s, args.scene_gap_s
+    )
     if not is_complete(args.dataroot, args.version):
         print(f"generating city subset ({args.logs} logs, {args.routes} routes) in {args.dataroot}")
         simulate("city", args.dataroot, jobs=args.jobs, overrides=overrides)

@@ -36,77 +36,62 @@ from pathlib import Path
 
 import radarslam  # noqa: F401  (sets the OpenMP wait policy before torch/open3d load)
 
-#: Named alternatives: overrides of the SLAM preset, and what they take away.
-ALTERNATIVES: dict[str, tuple[list[str], str]] = {
-    "default": ([], "the preset"),
+#: Named alternatives: what each takes away, and its overrides of the SLAM preset.
+ALTERNATIVES: dict[str, tuple[str, list[str]]] = {
+    "default": ("nothing: the preset", []),
     "no-clutter-filter": (
-        ["loops.proximity_min_neighbors=0"],
         "proximity registrations keep single returns",
+        ["loops.proximity_min_neighbors=0"],
     ),
     "one-vote": (
-        ["loops.link_min_consistent_loops=1"],
         "a session joins the map on one verified loop",
+        ["loops.link_min_consistent_loops=1"],
     ),
     "no-loop-spacing": (
-        ["loops.min_key_frames_between_loops=0"],
         "loop search at every key frame after an accepted loop",
+        ["loops.min_key_frames_between_loops=0"],
     ),
     "no-turned-search": (
-        ["loops.reversed_search=false"],
         "no turned AutoPlace queries (streets driven the other way)",
+        ["loops.reversed_search=false"],
     ),
     "no-conditioning": (
-        ["loops.link_min_constraint_ratio=0"],
         "a link needs no well-conditioned vote",
+        ["loops.link_min_constraint_ratio=0"],
     ),
     "no-same-log-speed": (
-        ["loops.same_log_max_speed_mps=null"],
         "scenes of one log may be linked any distance apart",
+        ["loops.same_log_max_speed_mps=null"],
     ),
     "no-proximity-consistency": (
-        ["loops.proximity_consistency_m=null"],
         "proximity loops get the map's 3 m consistency test",
+        ["loops.proximity_consistency_m=null"],
     ),
 }
 
-#: The cities: folder, simulator preset, generation overrides, nuScenes version.
-_LONG = [
-    "schedule.n_logs=4",
-    "schedule.n_routes=1",
-    "schedule.scenes_per_log=2",
-    "schedule.scene_duration_s=90.0",
-]
-RUNS: dict[str, tuple[Path, str, list[str], str]] = {
-    "long": (Path("data/bench-city-long"), "city", _LONG, "v1.0-trainval"),
-    **{
-        f"s{seed}": (
-            Path(f"data/city-long-s{seed}"),
-            "city",
-            [*_LONG, f"seed={seed}"],
-            "v1.0-trainval",
-        )
-        for seed in (7, 11, 21, 33)
-    },
-    "subset": (
-        Path("data/bench-city"),
-        "city",
-        ["schedule.n_logs=8", "schedule.n_routes=2"],
-        "v1.0-trainval",
-    ),
-    "contiguous": (
-        Path("data/bench-city-contiguous"),
-        "city",
-        [
-            "schedule.n_logs=4",
-            "schedule.n_routes=1",
-            "schedule.scenes_per_log=6",
-            "schedule.scene_duration_s=20.0",
-            "schedule.scene_gap_s=[0.2, 0.4]",
-        ],
-        "v1.0-trainval",
-    ),
-    "demo": (Path("data/demo"), "demo", [], "v1.0-mini"),
-}
+#: The runs: bench/slam.py's cities (``long`` again with other simulator seeds) and the demo.
+SEEDS = (7, 11, 21, 33)
+RUNS = ("long", *(f"s{seed}" for seed in SEEDS), "subset", "contiguous", "demo")
+
+
+def city(name: str) -> tuple[Path, str, list[str], str]:
+    """(dataroot, simulator preset, its overrides, nuScenes version) of run ``name``: the
+    generation settings of bench/slam.py's runs, so that both scripts read the same cities."""
+    if name == "demo":
+        return Path("data/demo"), "demo", [], "v1.0-mini"
+    bench_slam = sibling_bench("slam")
+    seed = {f"s{seed}": seed for seed in SEEDS}.get(name)
+    spec = bench_slam._RUNS["long" if seed is not None else name]
+    overrides = bench_slam.generation_overrides(
+        spec["logs"],
+        spec["routes"],
+        spec["scenes_per_log"],
+        spec["scene_duration_s"],
+        spec["scene_gap_s"],
+    )
+    if seed is None:
+        return spec["dataroot"], "city", overrides, "v1.0-trainval"
+    return Path(f"data/city-long-s{seed}"), "city", [*overrides, f"seed={seed}"], "v1.0-trainval"
 
 
 def ensure_city(name: str) -> Path:
@@ -116,7 +101,7 @@ def ensure_city(name: str) -> Path:
     from radarslam.sim.generate import is_complete, simulate
 
     bench_slam = sibling_bench("slam")
-    dataroot, preset, overrides, version = RUNS[name]
+    dataroot, preset, overrides, version = city(name)
     if not is_complete(dataroot, version):
         print(f"generating {name} ({preset}, {' '.join(overrides) or 'preset'}) in {dataroot}")
         simulate(preset, dataroot, jobs=2, overrides=overrides)
@@ -141,29 +126,24 @@ def warm_cache(dataroot: Path) -> None:
                     pass
 
 
-def config_digest(overrides: list[str]) -> str:
-    """Digest of the resolved SLAM config: a stored row is reused only while the preset and
-    its defaults resolve to the same settings."""
-    from radarslam.config import CONFIG_DIR, dump_config, load_config
-    from radarslam.slam.config import SlamConfig
+def config_digest(config) -> str:
+    """Digest of a resolved SLAM config: a stored row is reused only while the preset and its
+    defaults resolve to the same settings."""
+    from radarslam.config import dump_config
 
-    config = load_config(SlamConfig, CONFIG_DIR / "slam" / "default.yaml", overrides)
     return hashlib.sha256(dump_config(config).encode()).hexdigest()[:16]
 
 
-def run_one(run: str, overrides: list[str], folder: Path) -> dict:
-    """One SLAM run of the default preset with ``overrides``, its results written to ``folder``
-    (no plots): the row of the table."""
+def run_one(run: str, config, folder: Path) -> dict:
+    """One SLAM run with ``config``, its results written to ``folder`` (no plots): the row of
+    the table, without its overrides and digest."""
     import numpy as np
 
-    from radarslam.config import CONFIG_DIR, load_config
     from radarslam.nuscenes.reader import NuScenesRadar
-    from radarslam.slam.config import SlamConfig
     from radarslam.slam.pipeline import SlamPipeline
 
     bench_slam = sibling_bench("slam")
-    dataroot, _, _, version = RUNS[run]
-    config = load_config(SlamConfig, CONFIG_DIR / "slam" / "default.yaml", overrides)
+    dataroot, _, _, version = city(run)
     reader = NuScenesRadar(dataroot, version)
     scenes = [s.name for s in reader.scenes_for_location(reader.locations()[0])]
     t0 = time.perf_counter()
@@ -175,8 +155,6 @@ def run_one(run: str, overrides: list[str], folder: Path) -> dict:
     in_map = [s for s in result.sessions if s.name in set(anchored.sessions)]
     return {
         "run": run,
-        "overrides": overrides,
-        "config_digest": config_digest(overrides),
         "scenes": len(scenes),
         "sessions_in_map": len(in_map),
         "components": len(result.components),
@@ -199,7 +177,7 @@ def sibling_bench(script: str):
     return load(script)
 
 
-def cell(row: dict, base: dict | None) -> str:
+def cell(row: dict, base: dict) -> str:
     """``in map, wrong/accepted, recall, ATE, x real time``; bold where it differs from the
     default's in a way that matters (sessions, wrong loops, ATE by 5 %+)."""
     wrong = row["loops_accepted"] - row["loops_correct"]
@@ -208,7 +186,7 @@ def cell(row: dict, base: dict | None) -> str:
         f"{row['sessions_in_map']}/{row['scenes']}, {wrong} wrong of {row['loops_accepted']}, "
         f"rec {recall}, {row['ate_slam_in_map_m']:.2f} m, {row['real_time_factor']:.1f}x"
     )
-    if base is None or row is base:
+    if row is base:
         return text
     worse = (
         row["sessions_in_map"] != base["sessions_in_map"]
@@ -249,11 +227,15 @@ def main() -> int:
     if unknown or not runs:
         raise ConfigError(f"--runs {args.runs!r}: choose among {', '.join(RUNS)}")
     names = ["default", *[a for a in (args.alternative or ALTERNATIVES) if a != "default"]]
-    alternatives = {n: ALTERNATIVES[n][0] for n in names}
+    alternatives = {n: ALTERNATIVES[n] for n in names}
     if args.set:
-        alternatives["custom"] = list(args.set)
-    for overrides in alternatives.values():  # a bad key fails now, not after an hour
-        load_config(SlamConfig, CONFIG_DIR / "slam" / "default.yaml", overrides)
+        alternatives["custom"] = ("the --set overrides", list(args.set))
+    # Resolved once, before any work: a bad key fails now, not after an hour.
+    configs = {
+        name: load_config(SlamConfig, CONFIG_DIR / "slam" / "default.yaml", overrides)
+        for name, (_, overrides) in alternatives.items()
+    }
+    digests = {name: config_digest(config) for name, config in configs.items()}
 
     # Per-scene notes (empty sweeps, the calibration pass's verdict) repeat for every
     # alternative; the table is what this script is for.
@@ -262,17 +244,18 @@ def main() -> int:
     rows: dict[str, dict[str, dict]] = {}
     warmed: set[str] = set()
     for run in runs:
-        for name, overrides in alternatives.items():
+        for name, (_, overrides) in alternatives.items():
             path = args.out / name / f"{run}.json"
             stored = json.loads(path.read_text()) if path.is_file() and not args.fresh else None
-            if stored is not None and stored.get("config_digest") == config_digest(overrides):
+            if stored is not None and stored.get("config_digest") == digests[name]:
                 row = stored
             else:
                 print(f"{run} ({roots[run]}): {name} {' '.join(overrides)}", flush=True)
                 if run not in warmed:
                     warm_cache(roots[run])
                     warmed.add(run)
-                row = run_one(run, overrides, args.out / name / run)
+                row = run_one(run, configs[name], args.out / name / run)
+                row.update(overrides=overrides, config_digest=digests[name])
                 write_json_atomic(path, row)
             rows.setdefault(name, {})[run] = row
 
@@ -283,11 +266,11 @@ def main() -> int:
     print("SLAM joint ATE over the map, throughput (bold: sessions, wrong loops or ATE by 5 %+")
     print("differ from the default).")
     print()
-    print("| alternative | overrides | " + " | ".join(runs) + " |")
-    print("|---|---|" + "---|" * len(runs))
-    for name, overrides in alternatives.items():
+    print("| alternative | takes away | overrides | " + " | ".join(runs) + " |")
+    print("|---|---|---|" + "---|" * len(runs))
+    for name, (what, overrides) in alternatives.items():
         cells = [cell(rows[name][run], rows["default"][run]) for run in runs]
-        print(f"| {name} | {' '.join(overrides) or '-'} | " + " | ".join(cells) + " |")
+        print(f"| {name} | {what} | {' '.join(overrides) or '-'} | " + " | ".join(cells) + " |")
     return 0
 
 
