@@ -18,6 +18,7 @@ from radarslam.sim.radar import (
     RadarModel,
     SweepWorld,
     box_scatterers,
+    clock_offset_s,
     mounting_errors,
 )
 from radarslam.sim.traffic import EGO_START_S, EgoMotion, path_traffic, simulate_traffic
@@ -148,6 +149,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
     parked_sc, _, _, parked_occ = box_scatterers(parked, car_rng)
     models = {m.channel: RadarModel(cfg.radar, m.channel) for m in mounts}
     errors = mounting_errors(cfg.radar, seed)
+    clock_s = clock_offset_s(cfg.radar, seed, plan.index)
 
     # Sweep clocks: every radar its own period, phase and jitter.
     clocks = {}
@@ -237,7 +239,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 continue
             # Key frame per sample: the sweep nearest the sample time.
             key_of = {}
-            t_key = t_sw + errors[ch].timestamp_offset_s
+            t_key = t_sw + errors[ch].timestamp_offset_s + clock_s
             for i, tsmp in enumerate(t_smp):
                 nearest = int(np.argmin(np.abs(t_key - tsmp)))
                 if abs(t_key[nearest] - tsmp) <= 0.6 * cfg.radar.period_s:
@@ -248,11 +250,11 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
                 t_sw = t_sw[start:]
                 key_of = {k - start: i for k, i in key_of.items()}
             # The unit measures at t_sw with its true (perturbed) mounting; the dataset records
-            # the nominal mounting and a timestamp shifted by the unit's offset.
+            # the nominal mounting and a timestamp shifted by the unit's and the log's offsets.
             err = errors[ch]
             true_yaw = np.deg2rad(m.yaw_deg + err.yaw_deg)
             sxy, syaw, v_s = _sensor_states(ego_fn(t_sw), (m.x_m, m.y_m), true_yaw)
-            t_written = t_sw + err.timestamp_offset_s
+            t_written = t_sw + err.timestamp_offset_s + clock_s
             ego = ego_fn(t_written)
             model = models[ch]
             sd_tok = [
@@ -367,6 +369,7 @@ def simulate_log(cfg: SimConfig, plan: LogPlan, dataroot: str) -> dict:
         "points": n_points,
         "bytes": n_bytes,
         "samples": len(records["sample"]),
+        "clock_offset_s": clock_s,
     }
     return {"log": log_rec, "calibrated_sensor": cs_records, **records, "stats": stats}
 

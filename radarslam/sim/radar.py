@@ -74,13 +74,22 @@ class MountingError:
 def mounting_errors(cfg: RadarConfig, seed: int) -> dict[str, MountingError]:
     """Per-channel errors of one simulated vehicle (the same in every log of a dataroot)."""
     rng = np.random.default_rng([seed, 808])
-    yaw = rng.normal(0.0, cfg.mounting_yaw_std_deg, len(NUSCENES_MOUNTS))
-    dt = rng.normal(0.0, cfg.timestamp_offset_std_s, len(NUSCENES_MOUNTS))
+    n = len(NUSCENES_MOUNTS)
+    yaw = rng.normal(0.0, cfg.mounting_yaw_std_deg, n)
+    dt = rng.normal(0.0, cfg.timestamp_offset_std_s, n)
+    knocked = rng.uniform(0.0, 1.0, n) < cfg.mounting_yaw_outlier_probability
+    yaw = np.where(knocked, rng.normal(0.0, cfg.mounting_yaw_outlier_std_deg, n), yaw)
     given = cfg.mounting_yaw_error_deg or {}
     return {
         m.channel: MountingError(float(given.get(m.channel, yaw[i])), float(dt[i]))
         for i, m in enumerate(NUSCENES_MOUNTS)
     }
+
+
+def clock_offset_s(cfg: RadarConfig, seed: int, log_index: int) -> float:
+    """How far one log's written radar timestamps lead its ego-pose clock."""
+    rng = np.random.default_rng([seed, 809, log_index])
+    return float(cfg.clock_offset_mean_s + rng.normal(0.0, cfg.clock_offset_std_s))
 
 
 #: Per-point ground truth written to the sidecar: object class (``world.CLASS_NAMES``), candidate

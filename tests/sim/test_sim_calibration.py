@@ -13,7 +13,13 @@ from radarslam.errors import ConfigError
 from radarslam.sim.config import RadarConfig, load_sim_config
 from radarslam.sim.generate import simulate
 from radarslam.sim.planning import plan_logs
-from radarslam.sim.radar import NUSCENES_MOUNTS, RadarModel, SweepWorld, mounting_errors
+from radarslam.sim.radar import (
+    NUSCENES_MOUNTS,
+    RadarModel,
+    SweepWorld,
+    clock_offset_s,
+    mounting_errors,
+)
 from radarslam.sim.world import (
     PATH_STREET_BEYOND_M,
     Boxes,
@@ -39,11 +45,29 @@ def test_mounting_errors_are_seeded_per_vehicle_and_can_be_given():
     assert a == b
     assert a != mounting_errors(cfg, 4)
     yaws = np.array([e.yaw_deg for e in a.values()])
-    assert 0 < np.abs(yaws).max() < 5 * cfg.mounting_yaw_std_deg
-    given = RadarConfig(mounting_yaw_error_deg={"RADAR_FRONT": 1.5}, mounting_yaw_std_deg=0.0)
+    assert np.all(yaws != 0)
+    given = RadarConfig(
+        mounting_yaw_error_deg={"RADAR_FRONT": 1.5},
+        mounting_yaw_std_deg=0.0,
+        mounting_yaw_outlier_probability=0.0,
+    )
     e = mounting_errors(given, 3)
     assert e["RADAR_FRONT"].yaw_deg == 1.5
     assert e["RADAR_BACK_LEFT"].yaw_deg == 0.0
+
+
+def test_most_units_are_aligned_and_a_few_knocked_out():
+    """Mounting yaws are a mixture: sigma 0.25 deg, and with probability 0.05 a unit drawn with
+    sigma 1.5 deg instead (2,000 units: about 2.5 % beyond 1 deg, none of the aligned ones)."""
+    cfg = RadarConfig()
+    yaws = np.array([e.yaw_deg for s in range(400) for e in mounting_errors(cfg, s).values()])
+    beyond = np.mean(np.abs(yaws) > 1.0)
+    assert 0.015 < beyond < 0.04
+    inner = yaws[np.abs(yaws) < 1.0]
+    assert np.std(inner) == pytest.approx(0.25, rel=0.1)
+    aligned = RadarConfig(mounting_yaw_outlier_probability=0.0)
+    yaws = np.array([e.yaw_deg for s in range(400) for e in mounting_errors(aligned, s).values()])
+    assert np.abs(yaws).max() < 5 * aligned.mounting_yaw_std_deg
 
 
 def test_unknown_channel_in_radar_config_is_one_line():
@@ -92,7 +116,12 @@ def _static_world_error_m(root: Path, channel: str) -> float:
 def test_written_calibration_is_nominal_and_the_truth_is_rotated(tmp_path):
     """With a 5 deg mounting error the points are measured in the rotated (true) frame: placed
     with the written nominal calibration they land metres off the scatterers that made them."""
-    base = [*SHORT, "radar.mounting_yaw_std_deg=0"]
+    base = [
+        *SHORT,
+        "radar.mounting_yaw_error_deg=null",
+        "radar.mounting_yaw_std_deg=0",
+        "radar.mounting_yaw_outlier_probability=0",
+    ]
     exact = simulate("tiny", tmp_path / "exact", progress=False, overrides=base)
     rotated = simulate(
         "tiny",
@@ -116,7 +145,7 @@ def test_written_calibration_is_nominal_and_the_truth_is_rotated(tmp_path):
 
 
 def test_timestamp_offsets_shift_a_units_written_times(tmp_path):
-    common = [*SHORT, "radar.mounting_yaw_std_deg=0"]
+    common = [*SHORT, "radar.clock_offset_mean_s=0", "radar.clock_offset_std_s=0"]
     a = simulate(
         "tiny",
         tmp_path / "a",
@@ -149,6 +178,31 @@ def test_timestamp_offsets_shift_a_units_written_times(tmp_path):
     poses = {r["token"]: r["timestamp"] for r in _table(tmp_path / "b", "ego_pose")}
     for r in _table(tmp_path / "b", "sample_data"):
         assert poses[r["ego_pose_token"]] == r["timestamp"]
+
+
+def test_the_radar_clock_leads_the_pose_clock_per_log(tmp_path):
+    """A log's clock offset moves every unit's written times alike; the ground-truth pose is
+    taken at the written time, so it lags the measurement by the offset."""
+    common = [*SHORT, "radar.timestamp_offset_std_s=0", "radar.clock_offset_std_s=0"]
+    a = simulate(
+        "tiny", tmp_path / "a", progress=False, overrides=[*common, "radar.clock_offset_mean_s=0"]
+    )
+    b = simulate(
+        "tiny",
+        tmp_path / "b",
+        progress=False,
+        overrides=[*common, "radar.clock_offset_mean_s=0.05"],
+    )
+    assert [log["clock_offset_s"] for log in a.per_log] == [0.0]
+    assert [log["clock_offset_s"] for log in b.per_log] == [0.05]
+    ta = np.sort([r["timestamp"] for r in _table(tmp_path / "a", "sample_data")])
+    tb = np.sort([r["timestamp"] for r in _table(tmp_path / "b", "sample_data")])
+    gap = np.abs((ta + 50_000)[None, :] - tb[:, None]).min(axis=1)
+    assert np.sum(gap <= 2) >= len(tb) - 10  # a chain may start one sweep apart
+    drawn = load_sim_config("tiny").radar
+    offsets = [clock_offset_s(drawn, 3, i) for i in range(200)]
+    assert np.mean(offsets) == pytest.approx(drawn.clock_offset_mean_s, abs=0.005)
+    assert np.std(offsets) == pytest.approx(drawn.clock_offset_std_s, rel=0.15)
 
 
 def test_front_corner_units_are_less_sensitive(tiny_dataroot):
