@@ -87,7 +87,7 @@ def mounting_errors(cfg: RadarConfig, seed: int) -> dict[str, MountingError]:
 
 
 def clock_offset_s(cfg: RadarConfig, seed: int, log_index: int) -> float:
-    """How far one log's written radar timestamps lead its ego-pose clock."""
+    """One log's written radar timestamps minus the true measurement times (ego-pose clock)."""
     rng = np.random.default_rng([seed, 809, log_index])
     return float(cfg.clock_offset_mean_s + rng.normal(0.0, cfg.clock_offset_std_s))
 
