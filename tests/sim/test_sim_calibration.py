@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from radarslam.errors import ConfigError
+from radarslam.errors import ConfigError, DataError
 from radarslam.sim.config import RadarConfig, load_sim_config
 from radarslam.sim.generate import simulate
 from radarslam.sim.planning import plan_logs
@@ -20,6 +20,7 @@ from radarslam.sim.radar import (
     clock_offset_s,
     mounting_errors,
 )
+from radarslam.sim.truth import MeasurementTimeTruth
 from radarslam.sim.world import (
     PATH_STREET_BEYOND_M,
     Boxes,
@@ -199,6 +200,20 @@ def test_the_radar_clock_leads_the_pose_clock_per_log(tmp_path):
     tb = np.sort([r["timestamp"] for r in _table(tmp_path / "b", "sample_data")])
     gap = np.abs((ta + 50_000)[None, :] - tb[:, None]).min(axis=1)
     assert np.sum(gap <= 2) >= len(tb) - 10  # a chain may start one sweep apart
+    # The simulator's truth at the true measurement times: the written pose 50 ms earlier.
+    truth = MeasurementTimeTruth(tmp_path / "b", VERSION)
+    scene = _table(tmp_path / "b", "scene")[0]["name"]
+    assert truth.clock_offset_s(scene) == 0.05
+    poses = {r["token"]: r for r in _table(tmp_path / "b", "ego_pose")}
+    written = [poses[r["ego_pose_token"]] for r in _table(tmp_path / "b", "sample_data")][5:50]
+    stamps = np.array([p["timestamp"] for p in written])
+    at_written = truth.poses(scene, stamps + 50_000)
+    xy = np.array([p["translation"][:2] for p in written])
+    assert np.abs(at_written[:, :2, 3] - xy).max() < 0.01
+    moved = np.linalg.norm(truth.poses(scene, stamps)[:, :2, 3] - xy, axis=1)
+    assert moved.max() > 0.2  # 50 ms of driving
+    with pytest.raises(DataError, match="scene 'nope': not in"):
+        truth.poses("nope", stamps)
     drawn = load_sim_config("tiny").radar
     offsets = [clock_offset_s(drawn, 3, i) for i in range(200)]
     assert np.mean(offsets) == pytest.approx(drawn.clock_offset_mean_s, abs=0.005)
