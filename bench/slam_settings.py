@@ -55,10 +55,6 @@ ALTERNATIVES: dict[str, tuple[str, list[str]]] = {
         "no turned AutoPlace queries (streets driven the other way)",
         ["loops.reversed_search=false"],
     ),
-    "no-conditioning": (
-        "a link needs no well-conditioned vote",
-        ["loops.link_min_constraint_ratio=0"],
-    ),
     "no-same-log-speed": (
         "scenes of one log may be linked any distance apart",
         ["loops.same_log_max_speed_mps=null"],

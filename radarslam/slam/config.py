@@ -109,10 +109,6 @@ class LoopDetectionConfig(StrictModel):
     link_min_consistent_loops: int = Field(2, ge=1)
     link_consistency_m: float = Field(1.5, gt=0.0)
     link_consistency_deg: float = Field(10.0, gt=0.0)
-    #: At least one of a link's votes must be this well conditioned (constraint ratio, see
-    #: LoopVerifierConfig.min_constraint_ratio): registrations that can slide along a straight
-    #: street agree with each other when they slide together, hundreds of metres off.
-    link_min_constraint_ratio: float = Field(0.8, ge=0.0, le=1.0)
     #: Two scenes of one log are one vehicle's drive: a link may not put the later scene's first
     #: key frame farther from the earlier one's last than this speed over the time between them
     #: (plus 20 m of odometry drift). Look-alike parallel streets hundreds of metres apart then

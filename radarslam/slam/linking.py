@@ -2,8 +2,8 @@
 in the other; enough votes that agree merge the groups.
 
 Each vote's placement puts the others' loop key frames within ``link_consistency_m``; once
-``link_min_consistent_loops`` votes agree, at least one of them well conditioned
-(``link_min_constraint_ratio``), the groups merge (the other votes are rejected as false loops).
+``link_min_consistent_loops`` votes agree, the groups merge (the other votes are rejected as
+false loops).
 The merged placement is the mean of the agreeing votes: each vote errs on its own. A placement
 that would put two scenes of one log (one vehicle's drive) farther apart than the vehicle could
 have driven between them is not a candidate (``same_log_max_speed_mps``).
@@ -129,8 +129,6 @@ class SessionLinker:
             if self._drivable(a, b, placement):
                 best, best_count, b_from_a = agree, count, placement
         if len(best) < cfg.link_min_consistent_loops:
-            return
-        if not any(votes[j].record.constraint_ratio >= cfg.link_min_constraint_ratio for j in best):
             return
         agreeing = {id(votes[j]) for j in best}
         links = []

@@ -193,10 +193,12 @@ def test_session_joins_the_map_once_loops_agree(reader):
     assert err.max() < 1.0, "the linked session lies on its ground truth"
 
 
-@pytest.mark.parametrize(("ratio", "linked"), [(0.65, False), (0.9, True)])
-def test_a_link_needs_one_well_conditioned_vote(reader, ratio, linked):
-    """Agreeing votes that could all slide along a straight street (constraint ratio 0.65)
-    place nothing; the same votes pinned in every direction (0.9) link the session."""
+@pytest.mark.parametrize("ratio", [0.65, 0.9])
+def test_two_agreeing_votes_link_whatever_their_conditioning(reader, ratio):
+    """Two agreeing votes link the session, also where each could slide along a straight street
+    (constraint ratio 0.65): a slide is caught by the votes' agreement where the loops are and
+    by the proximity loops' consistency, and no synthetic run needs more (docs/results.md,
+    settings table)."""
 
     def accept(pipeline, q, c):
         return _true_pose(pipeline, q, c) if _is_link_pair(pipeline, q, c, 2) else None
@@ -204,7 +206,7 @@ def test_a_link_needs_one_well_conditioned_vote(reader, ratio, linked):
     pipeline = _scripted_pipeline(reader, accept)
     pipeline.verifiers.recognition.constraint_ratio = ratio
     res = pipeline.run([s.name for s in reader.scenes()])
-    assert (len(res.components) == 1) is linked
+    assert len(res.components) == 1
 
 
 @pytest.mark.parametrize(
