@@ -70,3 +70,17 @@ def test_a_bench_city_from_another_simulator_config_is_named(tmp_path):
     (tmp_path / "synthetic" / "config.yaml").write_text(yaml.safe_dump(stored))
     assert bench.stale_keys(tmp_path, [], preset="demo") == []
     assert "city.n_blocks_x" in " ".join(bench.stale_keys(tmp_path, []))
+
+
+def test_the_slam_bench_takes_the_measurement_time_truth_from_synthetic_dataroots_only(
+    tmp_path, tiny_dataroot
+):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_slam", BENCH / "slam.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    (tmp_path / "v1.0-mini").mkdir()  # a nuScenes layout without the simulator's truth
+    assert bench.measurement_time_truth(tmp_path, "v1.0-mini") is None
+    truth = bench.measurement_time_truth(tiny_dataroot, "v1.0-mini")
+    assert truth is not None and truth.clock_offset_s("scene-0001") == 0.0  # tiny: pose clock
