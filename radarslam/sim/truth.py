@@ -16,11 +16,12 @@ from pathlib import Path
 import numpy as np
 
 from radarslam.errors import DataError
+from radarslam.nuscenes.json_stream import _field, _load_json_list
 
 
 class MeasurementTimeTruth:
     """Ground-truth poses of a synthetic dataroot at the true measurement time of a radar
-    stamp: ``pose(scene, stamps_us)``."""
+    stamp: ``poses(scene, stamps_us)``."""
 
     def __init__(self, dataroot: str | Path, version: str) -> None:
         root = Path(dataroot)
@@ -32,10 +33,16 @@ class MeasurementTimeTruth:
             str(log["log"]): float(log.get("clock_offset_s", 0.0))
             for log in summary.get("per_log", [])
         }
-        logs = json.loads((root / version / "log.json").read_text())
-        scenes = json.loads((root / version / "scene.json").read_text())
-        log_name = {r["token"]: r["logfile"] for r in logs}
-        self._log_of = {s["name"]: log_name[s["log_token"]] for s in scenes}
+        # The reader's checked table loads: a missing or corrupt table is one line.
+        log_path, scene_path = root / version / "log.json", root / version / "scene.json"
+        log_name = {
+            _field(log_path, r, "token"): _field(log_path, r, "logfile")
+            for r in _load_json_list(log_path)
+        }
+        self._log_of = {
+            _field(scene_path, r, "name"): log_name.get(_field(scene_path, r, "log_token"), "")
+            for r in _load_json_list(scene_path)
+        }
         self._root = root
         self._tracks: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
@@ -44,8 +51,8 @@ class MeasurementTimeTruth:
         return self._offset_s.get(self._log(scene), 0.0)
 
     def _log(self, scene: str) -> str:
-        if scene not in self._log_of:
-            raise DataError(f"scene {scene!r}: not in {self._root}")
+        if not self._log_of.get(scene):
+            raise DataError(f"scene {scene!r}: not in {self._root} (or its log is not)")
         return self._log_of[scene]
 
     def _track(self, log: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -214,6 +214,9 @@ def test_the_radar_clock_leads_the_pose_clock_per_log(tmp_path):
     assert moved.max() > 0.2  # 50 ms of driving
     with pytest.raises(DataError, match="scene 'nope': not in"):
         truth.poses("nope", stamps)
+    (tmp_path / "a" / VERSION / "scene.json").write_text("[")
+    with pytest.raises(DataError, match=r"scene.json: corrupt JSON"):
+        MeasurementTimeTruth(tmp_path / "a", VERSION)
     drawn = load_sim_config("tiny").radar
     offsets = [clock_offset_s(drawn, 3, i) for i in range(200)]
     assert np.mean(offsets) == pytest.approx(drawn.clock_offset_mean_s, abs=0.005)
