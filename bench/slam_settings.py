@@ -39,10 +39,6 @@ import radarslam  # noqa: F401  (sets the OpenMP wait policy before torch/open3d
 #: Named alternatives: what each takes away, and its overrides of the SLAM preset.
 ALTERNATIVES: dict[str, tuple[str, list[str]]] = {
     "default": ("nothing: the preset", []),
-    "no-clutter-filter": (
-        "proximity registrations keep single returns",
-        ["loops.proximity_min_neighbors=0"],
-    ),
     "one-vote": (
         "a session joins the map on one verified loop",
         ["loops.link_min_consistent_loops=1"],

@@ -73,11 +73,6 @@ class LoopDetectionConfig(StrictModel):
     #: search.
     proximity_max_range_m: float | None = Field(60.0, gt=0.0)
     proximity_min_tight_fitness: float = Field(0.08, ge=0.0, le=1.0)
-    #: Proximity registrations drop points with fewer than this many others within 0.5 m in
-    #: their local map (the verifier's ``min_neighbors``; None: the verifier's setting): clutter
-    #: is single returns, a reflector's are repeated. Global registrations keep every point
-    #: (their thresholds were set with the clutter in).
-    proximity_min_neighbors: int | None = Field(2, ge=0)
     #: Between two sessions already in the map, a verified loop that moves the query farther than
     #: this from where the map predicts it is rejected (a look-alike street, not a revisit).
     map_consistency_m: float = Field(3.0, gt=0.0)

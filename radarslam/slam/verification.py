@@ -61,10 +61,6 @@ class Verifiers:
                 "min_tight_fitness": cfg.loops.proximity_min_tight_fitness,
             }
         )
-        if cfg.loops.proximity_min_neighbors is not None:
-            proximity = proximity.model_copy(
-                update={"min_neighbors": cfg.loops.proximity_min_neighbors}
-            )
         # Turned-image candidates come with a rough relative heading (half a turn) but no
         # position: the global translation search, over headings near 180 deg only.
         turned = lv.model_copy(

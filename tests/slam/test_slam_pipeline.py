@@ -8,6 +8,7 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
+from radarslam.config import load_config
 from radarslam.errors import CheckpointError, ConfigError, DataError
 from radarslam.geometry import invert, se2_to_matrix, yaw_of
 from radarslam.io.loops import LoopCandidate, LoopVerification
@@ -837,16 +838,14 @@ def test_the_query_map_is_past_only_and_the_candidate_map_centred(reader, scenes
     assert len(local_map(kf, True)) < len(local_map(kf, False))
 
 
-@pytest.mark.parametrize("min_neighbors", [2, None])
-def test_only_proximity_registrations_drop_single_clutter_returns(reader, min_neighbors):
-    # The global thresholds were calibrated with the clutter in the maps.
-    cfg = SlamConfig()
-    cfg.loops.proximity_min_neighbors = min_neighbors
+@pytest.mark.parametrize("min_neighbors", [0, 2])
+def test_every_registration_takes_the_verifiers_persistence_filter(reader, min_neighbors):
+    cfg = load_config(
+        SlamConfig, None, [f"backend.loop_verification.min_neighbors={min_neighbors}"]
+    )
     pipeline = SlamPipeline(reader, cfg, recognizer=_AllCandidates(), progress=False)
-    verifiers = pipeline.verifiers
-    assert verifiers.proximity.config.min_neighbors == (min_neighbors or 0)
-    for other in ("recognition", "guided", "turned"):
-        assert getattr(verifiers, other).config.min_neighbors == 0, other
+    for kind in ("recognition", "guided", "proximity", "turned"):
+        assert getattr(pipeline.verifiers, kind).config.min_neighbors == min_neighbors, kind
 
 
 def test_torch_runs_on_one_thread_until_the_odometry_process_is_done():
