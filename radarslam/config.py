@@ -163,13 +163,43 @@ def read_yaml(path: str | Path) -> dict:
     return data
 
 
+def _section_default(model: type[BaseModel], key: str, parent: BaseModel | None) -> Any:
+    """The value section ``key`` of ``model`` takes when nothing sets it (None: required)."""
+    if parent is not None:
+        return getattr(parent, key)
+    field = model.model_fields[key]
+    if field.is_required():
+        return None
+    return field.get_default(call_default_factory=True)
+
+
+def complete_sections(model: type[BaseModel], data: dict, parent: BaseModel | None = None) -> dict:
+    """``data`` with every partly given section completed from the section's default value.
+
+    A section whose default comes from a factory with its own values (the SLAM preset's
+    odometry runs a calibration pass; the odometry's Doppler fit refits a creeping car's
+    velocity) would otherwise be rebuilt from its class defaults as soon as one of its keys is
+    given: ``--set odometry.doppler.seed=1`` must change the seed and nothing else."""
+    out = dict(data)
+    for key, value in data.items():
+        if key not in model.model_fields or not isinstance(value, dict):
+            continue  # unknown keys and non-mappings: validation says what is wrong
+        default = _section_default(model, key, parent)
+        if isinstance(default, BaseModel):
+            given = complete_sections(type(default), value, default)
+            out[key] = {name: getattr(default, name) for name in type(default).model_fields}
+            out[key].update(given)
+    return out
+
+
 def build_config(
     model: type[M], data: dict, source: str = "config", overrides: list[str] | None = None
 ) -> M:
-    """Validate ``data``; errors name ``source``, or the override (of ``overrides``, already
-    applied to ``data``) that set the offending key."""
+    """Validate ``data`` (sections it gives in part keep their other defaults); errors name
+    ``source``, or the override (of ``overrides``, already applied to ``data``) that set the
+    offending key."""
     try:
-        return model.model_validate(data)
+        return model.model_validate(complete_sections(model, data))
     except ValidationError as exc:
         raise ConfigError(_format_validation_error(source, exc, overrides)) from None
 

@@ -1,4 +1,5 @@
 import pytest
+from pydantic import Field
 
 from radarslam.config import StrictModel, apply_overrides, dump_config, load_config
 from radarslam.errors import ConfigError
@@ -20,6 +21,56 @@ def test_defaults_yaml_and_overrides(tmp_path):
     cfg = load_config(Outer, path, ["inner.voxel_size_m=0.5"])
     assert cfg.name == "demo" and cfg.inner.iterations == 5 and cfg.inner.voxel_size_m == 0.5
     assert "voxel_size_m: 0.5" in dump_config(cfg)
+
+
+class Tuned(StrictModel):
+    """A section whose default is built with other values than its class defaults."""
+
+    inner: Inner = Field(default_factory=lambda: Inner(voxel_size_m=0.25, iterations=3))
+    other: Inner = Field(default_factory=Inner)
+
+
+def test_a_partly_given_section_keeps_its_factory_defaults(tmp_path):
+    cfg = load_config(Tuned, None, ["inner.iterations=7"])
+    assert (cfg.inner.voxel_size_m, cfg.inner.iterations) == (0.25, 7)
+    path = tmp_path / "c.yaml"
+    path.write_text("inner:\n  voxel_size_m: 2.0\nother:\n  iterations: 4\n")
+    cfg = load_config(Tuned, path)
+    assert (cfg.inner.voxel_size_m, cfg.inner.iterations) == (2.0, 3)
+    assert (cfg.other.voxel_size_m, cfg.other.iterations) == (1.0, 4)
+    with pytest.raises(ConfigError, match=r"unknown key 'inner.iteratons'"):
+        load_config(Tuned, None, ["inner.iteratons=5"])
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out: dict = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+@pytest.mark.parametrize(
+    "override",
+    ["odometry.doppler.speed_scale_error=-0.002", "odometry.doppler.seed=3"],
+)
+def test_one_slam_odometry_key_changes_that_key_only(override):
+    # The SLAM preset's odometry and the odometry's Doppler fit are built by factories with
+    # their own values (a calibration pass; a refitted creeping velocity): giving one key of
+    # those sections must not rebuild them from their class defaults.
+    from radarslam.config import CONFIG_DIR
+    from radarslam.slam.config import SlamConfig
+
+    path = CONFIG_DIR / "slam" / "default.yaml"
+    plain = _flat(load_config(SlamConfig, path).model_dump())
+    changed = _flat(load_config(SlamConfig, path, [override]).model_dump())
+    key = override.split("=")[0]
+    assert {k for k in plain if plain[k] != changed[k]} == {key}
+    bare = load_config(SlamConfig, None, [override])
+    assert bare.odometry.fusion.calibration.passes == 2
+    assert bare.odometry.doppler.static_velocity == "refit"
 
 
 def test_misspelled_key_fails_loudly(tmp_path):
