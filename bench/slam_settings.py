@@ -119,11 +119,16 @@ def warm_cache(dataroot: Path) -> None:
 
 
 def config_digest(config) -> str:
-    """Digest of a resolved SLAM config: a stored row is reused only while the preset and its
-    defaults resolve to the same settings."""
+    """Digest of a resolved SLAM config and of the AutoPlace weights it loads: a stored row is
+    reused only while the preset and its defaults resolve to the same settings and the weights
+    are the same file (``loops.checkpoint: null`` names the shipped weights, whatever they are)."""
     from radarslam.config import dump_config
+    from radarslam.place_recognition.recognizer import checkpoint_path
 
-    return hashlib.sha256(dump_config(config).encode()).hexdigest()[:16]
+    h = hashlib.sha256(dump_config(config).encode())
+    if config.loops.enabled:
+        h.update(checkpoint_path(config.loops.checkpoint).read_bytes())
+    return h.hexdigest()[:16]
 
 
 def run_one(run: str, config, folder: Path) -> dict:

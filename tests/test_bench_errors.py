@@ -84,3 +84,28 @@ def test_the_slam_bench_takes_the_measurement_time_truth_from_synthetic_dataroot
     assert bench.measurement_time_truth(tmp_path, "v1.0-mini") is None
     truth = bench.measurement_time_truth(tiny_dataroot, "v1.0-mini")
     assert truth is not None and truth.clock_offset_s("scene-0001") == 0.0  # tiny: pose clock
+
+
+def test_the_settings_bench_reruns_a_row_when_the_weights_change(tmp_path):
+    # Rows are cached by config digest; `loops.checkpoint: null` resolves to whatever weights
+    # are shipped, so the digest must follow the file, not the setting.
+    import importlib.util
+    import shutil
+
+    from radarslam.config import load_config
+    from radarslam.place_recognition.recognizer import DEFAULT_CHECKPOINT
+    from radarslam.slam.config import SlamConfig
+
+    spec = importlib.util.spec_from_file_location("bench_slam_settings", BENCH / "slam_settings.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    copy = tmp_path / "weights.pt"
+    shutil.copyfile(DEFAULT_CHECKPOINT, copy)
+    cfg = load_config(SlamConfig, None, [f"loops.checkpoint={copy}"])
+    same = bench.config_digest(cfg)
+    assert bench.config_digest(cfg) == same
+    with copy.open("ab") as f:
+        f.write(b"\0")
+    assert bench.config_digest(cfg) != same
+    off = load_config(SlamConfig, None, ["loops.enabled=false", "loops.checkpoint=/no/such.pt"])
+    assert bench.config_digest(off)  # no weights read when loop closure is off
