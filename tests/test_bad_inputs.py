@@ -216,6 +216,30 @@ CASES: list[tuple[str, Damage, str, str]] = [
         STATS + " --scenes scene-0002",
         "scene 'scene-0002' has no samples",
     ),
+    (
+        "scene name not a string, run",
+        _edit_table("scene", lambda rs: rs[0].update(name=5)),
+        RUN,
+        "scene.json: record '",
+    ),
+    (
+        "sample next a list, odometry",
+        _edit_table("sample", lambda rs: rs[0].update(next=["x"])),
+        ODO,
+        "field 'next' is ['x'], expected a string",
+    ),
+    (
+        "scene name not a file name, odometry",
+        _edit_table("scene", lambda rs: rs[0].update(name="../up")),
+        ODO,
+        "scene.json: session name '../up' cannot be used in file names",
+    ),
+    (
+        "scene name not a file name, run",
+        _edit_table("scene", lambda rs: rs[0].update(name="a/b")),
+        RUN,
+        "scene.json: session name 'a/b' cannot be used in file names",
+    ),
     # ---- scene selection -------------------------------------------------------------------------
     ("empty --scenes, run", _nothing, RUN + " --scenes ''", "--scenes '': empty scene name"),
     ("empty --scenes, odometry", _nothing, ODO + " --scenes ''", "--scenes '': empty scene name"),
@@ -355,6 +379,12 @@ CASES: list[tuple[str, Damage, str, str]] = [
         _write("bad.pt", "not a checkpoint"),
         "run --dataroot {root} --out {tmp}/out --checkpoint {tmp}/bad.pt --no-progress",
         "bad.pt: not a radarslam checkpoint",
+    ),
+    (
+        "place database given as the checkpoint",
+        _then(_empty_database, lambda root, tmp: (tmp / "empty.npz").rename(tmp / "db.pt")),
+        "pr build-db --dataroot {root} --out {tmp}/db.npz --checkpoint {tmp}/db.pt",
+        "db.pt: not a radarslam checkpoint (a zip archive, but not torch's: holds ",
     ),
     (
         "pr query: empty database",

@@ -32,6 +32,19 @@ def scene_names(text: str | None, option: str = "--scenes") -> list[str] | None:
     return names
 
 
+def check_output_names(reader, infos) -> None:
+    """The scenes' names make the file names of a results folder: a name that cannot (a damaged
+    scene.json) fails before the run, naming the table, not when the results are written."""
+    from radarslam.errors import DataError
+    from radarslam.io.results import check_session_name
+
+    for info in infos:
+        try:
+            check_session_name(info.name)
+        except DataError as exc:
+            raise DataError(f"{reader.tables.path('scene')}: {exc}") from None
+
+
 def stats(
     dataroot: Annotated[Path, typer.Argument(help="nuScenes dataroot (holds <version>/*.json).")],
     version: Annotated[str, typer.Option(help=VERSION_HELP)] = VERSION_DEFAULT,

@@ -56,6 +56,17 @@ def _field(path: Path, rec: dict, key: str, i: int | None = None):
         raise DataError(f"{path}: {where} has no {key!r} field") from None
 
 
+def _str_field(path: Path, rec: dict, key: str, i: int | None = None, *, optional: bool = False):
+    """``rec[key]`` when it is a string (or None, when ``optional``); DataError otherwise (a
+    token that is a number or a list would fail later as a dict key, far from the file)."""
+    value = _field(path, rec, key, i)
+    if isinstance(value, str) or (optional and value is None):
+        return value
+    token = rec.get("token")
+    where = f"record {token!r}" if isinstance(token, str) else f"record {i}"
+    raise DataError(f"{path}: {where} field {key!r} is {value!r}, expected a string")
+
+
 def _floats(path: Path, rec: dict, key: str, n: int) -> list[float]:
     value = _field(path, rec, key)
     if (

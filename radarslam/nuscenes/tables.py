@@ -46,6 +46,7 @@ from radarslam.nuscenes.json_stream import (
     _loads_many,
     _number_block,
     _radar_batches,
+    _str_field,
     _text_array,
 )
 from radarslam.nuscenes.records import RadarIndex, SmallTables, TokenIndex, _bytes_array
@@ -140,15 +141,17 @@ class NuScenesTables:
         samples = _load_json_list(p_sample)
 
         logs = {}
-        for rec in logs_list:
-            for key in ("location", "date_captured"):
-                _field(p_log, rec, key)
-            logs[_field(p_log, rec, "token")] = rec
+        for i, rec in enumerate(logs_list):
+            _str_field(p_log, rec, "location", i)
+            _field(p_log, rec, "date_captured", i)
+            logs[_str_field(p_log, rec, "token", i)] = rec
 
         scene_token_row: dict[str, int] = {}
         scene_row: dict[str, int] = {}
         for i, rec in enumerate(scenes):
-            for key in ("token", "name", "log_token", "first_sample_token", "last_sample_token"):
+            for key in ("token", "name", "log_token"):
+                _str_field(p_scene, rec, key, i)
+            for key in ("first_sample_token", "last_sample_token"):  # checked per scene
                 _field(p_scene, rec, key, i)
             if rec["log_token"] not in logs:
                 raise DataError(
@@ -166,20 +169,20 @@ class NuScenesTables:
         s_scene = np.zeros(n, dtype=np.int32)
         s_next_tok = []
         for i, rec in enumerate(samples):
-            s_token.append(_field(p_sample, rec, "token", i))
+            s_token.append(_str_field(p_sample, rec, "token", i))
             ts = _field(p_sample, rec, "timestamp", i)
             if not isinstance(ts, int) or isinstance(ts, bool):
                 raise DataError(
                     f"{p_sample}: record {rec['token']!r} timestamp {ts!r} is not an int"
                 )
             s_time[i] = ts
-            sc = _field(p_sample, rec, "scene_token", i)
+            sc = _str_field(p_sample, rec, "scene_token", i)
             if sc not in scene_token_row:
                 raise DataError(
                     f"{p_sample}: sample {rec['token']!r} refers to scene {sc!r} not in scene.json"
                 )
             s_scene[i] = scene_token_row[sc]
-            s_next_tok.append(_field(p_sample, rec, "next", i))
+            s_next_tok.append(_str_field(p_sample, rec, "next", i, optional=True))
         sample_row = {t: i for i, t in enumerate(s_token)}
         if len(sample_row) != n:
             raise DataError(f"{p_sample}: duplicate sample tokens")
@@ -194,8 +197,8 @@ class NuScenesTables:
 
         sensor_channel = {}
         for i, rec in enumerate(sensors):
-            tok = _field(p_sensor, rec, "token", i)
-            ch = _field(p_sensor, rec, "channel", i)
+            tok = _str_field(p_sensor, rec, "token", i)
+            ch = _str_field(p_sensor, rec, "channel", i)
             modality = rec.get("modality", "radar" if str(ch).startswith("RADAR") else "")
             sensor_channel[tok] = (
                 RADAR_CHANNELS.index(ch) if (modality == "radar" and ch in RADAR_CHANNELS) else -1
@@ -206,8 +209,8 @@ class NuScenesTables:
         cs_t = np.zeros((m, 3))
         cs_q = np.zeros((m, 4))
         for i, rec in enumerate(cs_list):
-            cs_token.append(_field(p_cs, rec, "token", i))
-            st = _field(p_cs, rec, "sensor_token", i)
+            cs_token.append(_str_field(p_cs, rec, "token", i))
+            st = _str_field(p_cs, rec, "sensor_token", i)
             if st not in sensor_channel:
                 raise DataError(f"{p_cs}: record {rec['token']!r} sensor {st!r} not in sensor.json")
             cs_channel[i] = sensor_channel[st]
@@ -366,12 +369,17 @@ class NuScenesTables:
                 kf = [bool(r["is_key_frame"]) for r in recs]
                 for col, key in keys.items():
                     values = [r[key] for r in recs]
-                    cols[col].append(_text_array(p_sd, values, col, utf8=col == "filename"))
+                    cols[col].append(_text_array(p_sd, values, key, utf8=col == "filename"))
             except KeyError as exc:
                 r = next(r for r in recs if exc.args[0] not in r)
                 raise DataError(
                     f"{p_sd}: record {r.get('token')!r} has no {exc.args[0]!r} field"
                 ) from None
+            except TypeError:  # an unhashable token (a list, an object) used as a dict key
+                for r in recs:
+                    for key in ("calibrated_sensor_token", "sample_token"):
+                        _str_field(p_sd, r, key)
+                raise
             cs_rows.append(np.asarray(cs_i, dtype=np.int32))
             sample_rows.append(np.asarray(s_i, dtype=np.int32))
             stamps.append(np.asarray(ts, dtype=np.int64))

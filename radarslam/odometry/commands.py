@@ -37,7 +37,7 @@ def odometry(
     from radarslam.config import load_config
     from radarslam.errors import ConfigError
     from radarslam.io.results import check_results_dir
-    from radarslam.nuscenes.commands import scene_names
+    from radarslam.nuscenes.commands import check_output_names, scene_names
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.odometry.baselines import METHODS
     from radarslam.odometry.config import OdometryConfig
@@ -51,6 +51,7 @@ def odometry(
     reader = NuScenesRadar(dataroot, version)
     names = scene_names(scenes)
     infos = [reader.scene(n) for n in names] if names else reader.scenes()
+    check_output_names(reader, infos)
     traj = run_odometry(reader, infos, cfg, method=method, progress=progress)
     summary = write_outputs(traj, out, cfg)
     tot = summary["total"]

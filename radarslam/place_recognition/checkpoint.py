@@ -109,6 +109,18 @@ def _check_archive(path: Path) -> None:
     except OSError as exc:
         raise CheckpointError(f"{path}: unreadable ({exc.strerror or exc})") from None
     if is_zip:
+        try:
+            with zipfile.ZipFile(path) as zf:
+                names = zf.namelist()
+        except (zipfile.BadZipFile, OSError, ValueError):
+            raise CheckpointError(
+                f"{path}: not a readable checkpoint (truncated or damaged zip archive)"
+            ) from None
+        if not any(n.endswith("/data.pkl") for n in names):  # torch.save writes <name>/data.pkl
+            raise CheckpointError(
+                f"{path}: not a radarslam checkpoint (a zip archive, but not torch's: "
+                f"holds {', '.join(names[:3]) or 'nothing'}{', ...' if len(names) > 3 else ''})"
+            )
         return
     if not head:
         raise CheckpointError(f"{path}: not a readable checkpoint (empty file)")

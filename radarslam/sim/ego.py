@@ -37,6 +37,10 @@ def extend_route(net: StreetNetwork, rng: np.random.Generator, seq: list[int], l
     return list(seq) + tail[2:]
 
 
+#: The fastest ego motion a TUM trajectory to drive along may have (m/s, 360 km/h).
+MAX_TUM_SPEED_MPS = 100.0
+
+
 def read_tum(path: str | Path) -> np.ndarray:
     """(N, 8) rows timestamp_s x y z qx qy qz qw, sorted by time, timestamps strictly increasing."""
     path = Path(path)
@@ -67,6 +71,18 @@ def read_tum(path: str | Path) -> np.ndarray:
         raise DataError(
             f"{path}:{lines[i]}: timestamp {float(arr[i, 0])!r} is not later than the previous "
             "one; timestamps must be strictly increasing"
+        )
+    # A jump (a corrupt line, coordinates in other units) would make the simulated city follow
+    # it: a street of one point per metre, gigabytes for a jump of a million kilometres.
+    dt = np.diff(arr[:, 0])
+    dist = np.hypot(*np.diff(arr[:, 1:3], axis=0).T)
+    speed = dist / dt
+    if np.any(speed > MAX_TUM_SPEED_MPS):
+        i = int(np.argmax(speed > MAX_TUM_SPEED_MPS)) + 1
+        raise DataError(
+            f"{path}:{lines[i]}: pose is {dist[i - 1]:.6g} m from the previous one "
+            f"{dt[i - 1]:.6g} s earlier ({speed[i - 1]:.3g} m/s; a vehicle drives at most "
+            f"{MAX_TUM_SPEED_MPS:g} m/s): wrong units, or a corrupt line?"
         )
     qn = np.linalg.norm(arr[:, 4:8], axis=1)
     if np.any(qn < 1e-6):

@@ -97,6 +97,7 @@ def run_slam(
     from rich.console import Console
 
     from radarslam.config import dump_config
+    from radarslam.nuscenes.commands import check_output_names
     from radarslam.nuscenes.reader import NuScenesRadar
     from radarslam.slam.config import SlamConfig
     from radarslam.slam.outputs import check_results_dir, write_results
@@ -107,6 +108,7 @@ def run_slam(
     check_results_dir(out)  # a bad --out fails now, not after the run
     reader = NuScenesRadar(dataroot, version)
     infos = _select_scenes(reader, scenes, location, max_scenes)
+    check_output_names(reader, infos)
     console.print(
         f"SLAM on {len(infos)} scene(s) of {dataroot} ({version}): "
         + ", ".join(i.name for i in infos[:8])

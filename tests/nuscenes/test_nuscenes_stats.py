@@ -104,37 +104,35 @@ def test_scene_drive_integrates_the_fit_against_the_ground_truth():
 
 
 def test_statistics_pinned_on_tiny(tiny_dataroot):
+    # The simulator is deterministic on one kind of CPU, but numpy picks its SIMD kernels by CPU
+    # (AVX2, AVX-512), whose results differ in the last bits, and the radar model's thresholds
+    # amplify that: each band below holds the values measured on two kinds of machine (the
+    # first / second number in each comment; the second an AMD EPYC with AVX2) and is narrow
+    # enough to catch a change of the radar model.
     reader = NuScenesRadar(tiny_dataroot, "v1.0-mini", use_cache=False)
     st = dataset_statistics(reader, progress=False)
     c, r, d, p = st.counts, st.redetection, st.doppler, st.points
     assert (st.num_scenes, st.num_frames, c.num_sweeps) == (2, 229, 1147)
-    assert (c.mean, c.raw_mean) == (
-        pytest.approx(41.24586, abs=1e-4),
-        pytest.approx(79.59459, abs=1e-4),
-    )
+    assert c.mean == pytest.approx(41.18, abs=0.15)  # 41.246 / 41.118
+    assert c.raw_mean == pytest.approx(79.66, abs=0.15)  # 79.595 / 79.724
     assert (c.p10, c.p50, c.p90) == (9.0, 44.0, 70.0)
-    assert c.empty_fraction * c.num_sweeps == pytest.approx(1.0)  # one empty sweep
-    assert r.next == pytest.approx(0.50535, abs=1e-4) and r.within == pytest.approx(
-        0.74695, abs=1e-4
-    )
-    assert r.sources_next == 43172
-    assert d.heading_error_worst_dps == pytest.approx(1.23080, abs=1e-4)
-    assert d.speed_scale == pytest.approx(0.99894, abs=1e-4) and d.valid_fraction == 1.0
-    assert p.range_m["p50"] == pytest.approx(36.640, abs=1e-2)
-    assert (p.rcs_dbsm["p10"], p.rcs_dbsm["p50"], p.rcs_dbsm["p90"]) == (-3.5, 5.0, 14.5)
-    assert p.moving_fraction == pytest.approx(0.07742, abs=1e-4)
-    assert c.per_radar_mean["RADAR_BACK_LEFT"] == pytest.approx(64.817, abs=1e-3)
-    assert p.per_radar_range_p50_m["RADAR_FRONT_LEFT"] == pytest.approx(21.378, abs=1e-2)
-    assert p.per_radar_range_p90_m["RADAR_BACK_RIGHT"] == pytest.approx(100.432, abs=1e-2)
+    assert c.empty_fraction * c.num_sweeps <= 2  # 1 / 0 empty sweeps
+    assert r.next == pytest.approx(0.5015, abs=0.006)  # 0.5054 / 0.4976
+    assert r.within == pytest.approx(0.7446, abs=0.004)  # 0.7470 / 0.7422
+    assert r.sources_next == pytest.approx(43066, rel=0.005)  # 43172 / 42960
+    assert d.heading_error_worst_dps == pytest.approx(1.305, abs=0.1)  # 1.231 / 1.380
+    assert d.speed_scale == pytest.approx(0.9992, abs=0.0005) and d.valid_fraction == 1.0
+    assert p.range_m["p50"] == pytest.approx(36.53, abs=0.2)  # 36.640 / 36.430
+    assert (p.rcs_dbsm["p10"], p.rcs_dbsm["p50"]) == (-3.5, 5.0)
+    assert p.rcs_dbsm["p90"] in (14.5, 15.0)
+    assert p.moving_fraction == pytest.approx(0.0781, abs=0.001)  # 0.0774 / 0.0788
+    assert c.per_radar_mean["RADAR_BACK_LEFT"] == pytest.approx(64.53, abs=0.4)  # 64.82 / 64.25
+    assert p.per_radar_range_p50_m["RADAR_FRONT_LEFT"] == pytest.approx(21.32, abs=0.1)
+    assert p.per_radar_range_p90_m["RADAR_BACK_RIGHT"] == pytest.approx(100.2, abs=0.35)
     # the front corner units report RCS lowered by their 5 dB loss (radar.gain_biases_rcs)
-    assert (
-        p.per_radar_rcs_p50_dbsm["RADAR_FRONT"],
-        p.per_radar_rcs_p50_dbsm["RADAR_FRONT_RIGHT"],
-    ) == (
-        6.0,
-        3.0,
-    )
-    assert p.per_radar_moving_fraction["RADAR_FRONT_RIGHT"] == pytest.approx(0.10460, abs=1e-4)
+    assert p.per_radar_rcs_p50_dbsm["RADAR_FRONT"] in (6.0, 6.5)
+    assert p.per_radar_rcs_p50_dbsm["RADAR_FRONT_RIGHT"] == 3.0
+    assert p.per_radar_moving_fraction["RADAR_FRONT_RIGHT"] == pytest.approx(0.1052, abs=0.001)
 
     # independent recount from the files: every sweep of every radar, once
     filt = odometry_inputs()[0]
@@ -195,7 +193,7 @@ def test_stats_command_against_itself(tiny_dataroot, tmp_path):
     data = json.loads(out.read_text())
     assert data["dataroot"] == data["reference"]
     table = {row["key"]: row for row in data["comparison"]}
-    assert table["mean"]["value"] == pytest.approx(41.24586, abs=1e-4)
+    assert table["mean"]["value"] == pytest.approx(41.18, abs=0.15)  # CPU-dependent: above
     assert {row["ratio"] for row in data["comparison"] if row["kind"] != "dB"} == {1.0}
     assert {row["ratio"] for row in data["comparison"] if row["kind"] == "dB"} == {0.0}
     assert "radar_redetect_next.RADAR_FRONT_LEFT" in table

@@ -189,6 +189,36 @@ def _radar(recs):
         ("sample", lambda rs: rs[0].update(scene_token="s"), "refers to scene 's'"),
         ("scene", lambda rs: rs[0].update(log_token="l"), "refers to log 'l'"),
         ("scene", lambda rs: rs[1].update(name=rs[0]["name"]), "appears twice"),
+        # a token or name of the wrong type: named with its table, not a TypeError as a dict key
+        ("scene", lambda rs: rs[0].update(name=5), r"scene\.json: record '\w+' field 'name' is 5"),
+        ("scene", lambda rs: rs[0].update(token=[1]), r"record 0 field 'token' is \[1\], expected"),
+        ("scene", lambda rs: rs[0].update(log_token=[1]), r"field 'log_token' is \[1\], expected"),
+        ("sample", lambda rs: rs[0].update(token=5), r"sample\.json: record 0 field 'token' is 5"),
+        ("sample", lambda rs: rs[0].update(next=[1]), r"field 'next' is \[1\], expected a string"),
+        ("log", lambda rs: rs[0].update(token=[1]), r"log\.json: record 0 field 'token' is \[1\]"),
+        ("log", lambda rs: rs[0].update(location=None), r"field 'location' is None, expected a"),
+        ("sensor", lambda rs: rs[0].update(token=[1]), r"sensor\.json: record 0 field 'token'"),
+        ("sensor", lambda rs: [r.update(channel=1) for r in rs], r"field 'channel' is 1, expected"),
+        (
+            "calibrated_sensor",
+            lambda rs: rs[0].update(sensor_token=[5]),
+            r"calibrated_sensor\.json: record '\w+' field 'sensor_token' is \[5\], expected",
+        ),
+        (
+            "sample_data",
+            lambda rs: _radar(rs).update(calibrated_sensor_token=[5]),
+            r"sample_data\.json: record '\w+' field 'calibrated_sensor_token' is \[5\]",
+        ),
+        (
+            "sample_data",
+            lambda rs: _radar(rs).update(sample_token=[5]),
+            r"sample_data\.json: record '\w+' field 'sample_token' is \[5\], expected a string",
+        ),
+        (
+            "sample_data",
+            lambda rs: [r.update(ego_pose_token=5) for r in rs],
+            "a radar record has ego_pose_token 5, expected a string",
+        ),
     ],
 )
 def test_inconsistent_tables(clone, name, edit, match):

@@ -210,6 +210,22 @@ def test_bad_tum_files_name_the_file(tmp_path):
         read_tum(dup)
 
 
+def test_a_jump_in_a_tum_trajectory_is_refused(tmp_path):
+    """A pose far from the previous one (a corrupt line, other units) would make the city
+    follow it: a street of one point per metre, the process killed for memory."""
+    rows = [f"{t:.1f} {10 * t} 0 0 0 0 0 1" for t in np.arange(0.0, 6.0, 0.5)]
+    rows[4] = "2.0 1e9 0 0 0 0 0 1"
+    jump = tmp_path / "jump.tum"
+    jump.write_text("# t x y z qx qy qz qw\n" + "\n".join(rows) + "\n")
+    with pytest.raises(
+        DataError, match=r"jump\.tum:6: pose is 1e\+09 m from the previous one 0\.5 s earlier"
+    ):
+        read_tum(jump)
+    with pytest.raises(DataError, match="a vehicle drives at most 100 m/s"):
+        simulate("tiny", tmp_path / "out", progress=False, trajectory_tum=jump)
+    assert not (tmp_path / "out").exists()
+
+
 def test_tum_trajectory_is_followed_exactly(tmp_path):
     t = np.arange(0.0, 8.01, 0.1)
     radius, omega = 40.0, 0.15
