@@ -16,7 +16,6 @@ fit) is a one-line :class:`CheckpointError` naming the file.
 from __future__ import annotations
 
 import hashlib
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +24,7 @@ from pydantic import BaseModel, ValidationError
 
 from radarslam.errors import CheckpointError
 from radarslam.io.atomic import atomic_path
+from radarslam.place_recognition.archive import check_archive
 
 from .models import ModelConfig, build_model
 
@@ -99,44 +99,12 @@ def _first_sentence(exc: BaseException, limit: int = 120) -> str:
     return text
 
 
-def _check_archive(path: Path) -> None:
-    """A checkpoint is a torch zip archive: anything else fails here with a short reason (torch's
-    own messages for such files are several sentences about ``weights_only``)."""
-    try:
-        with path.open("rb") as fh:
-            head = fh.read(4)
-        is_zip = zipfile.is_zipfile(path)
-    except OSError as exc:
-        raise CheckpointError(f"{path}: unreadable ({exc.strerror or exc})") from None
-    if is_zip:
-        try:
-            with zipfile.ZipFile(path) as zf:
-                names = zf.namelist()
-        except (zipfile.BadZipFile, OSError, ValueError):
-            raise CheckpointError(
-                f"{path}: not a readable checkpoint (truncated or damaged zip archive)"
-            ) from None
-        if not any(n.endswith("/data.pkl") for n in names):  # torch.save writes <name>/data.pkl
-            raise CheckpointError(
-                f"{path}: not a radarslam checkpoint (a zip archive, but not torch's: "
-                f"holds {', '.join(names[:3]) or 'nothing'}{', ...' if len(names) > 3 else ''})"
-            )
-        return
-    if not head:
-        raise CheckpointError(f"{path}: not a readable checkpoint (empty file)")
-    if head.startswith(b"PK"):
-        raise CheckpointError(
-            f"{path}: not a readable checkpoint (truncated or damaged zip archive)"
-        )
-    raise CheckpointError(f"{path}: not a radarslam checkpoint (not a torch zip archive)")
-
-
 def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
     """The verified payload of a checkpoint (weights still in their stored dtype)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file does not exist")
-    _check_archive(path)
+    check_archive(path)
     try:
         payload = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/garbled zips

@@ -26,6 +26,7 @@ import numpy as np
 
 from radarslam.config import build_config
 from radarslam.errors import CheckpointError, DataError
+from radarslam.place_recognition.archive import check_archive
 from radarslam.place_recognition.config import PlaceRecognizerConfig
 from radarslam.place_recognition.rcshr import bin_edges, kl_divergence, rcs_histogram
 from radarslam.place_recognition.retrieval import DescriptorIndex, check_k
@@ -38,9 +39,12 @@ def checkpoint_path(checkpoint: str | Path | None) -> Path:
     """The checkpoint file to load (None: the shipped compact weights); CheckpointError if it
     is not there."""
     path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+    if path.is_dir():
+        raise CheckpointError(f"{path}: is a folder, not a checkpoint file")
     if not path.is_file():
         hint = "" if checkpoint is not None else " (default compact weights not installed)"
         raise CheckpointError(f"{path}: checkpoint not found{hint}")
+    check_archive(path)  # an empty, truncated or foreign file fails here, without torch
     return path
 
 

@@ -302,6 +302,18 @@ def test_bad_inputs_are_clear_errors(reader, tmp_path):
     cfg.loops.checkpoint = str(tmp_path / "missing.pt")
     with pytest.raises(CheckpointError, match=r"missing\.pt: checkpoint not found"):
         SlamPipeline(reader, cfg, progress=False)
+    # so do an empty, a foreign and a folder checkpoint, before torch is needed
+    (tmp_path / "empty.pt").write_bytes(b"")
+    (tmp_path / "text.pt").write_text("not a checkpoint")
+    (tmp_path / "folder.pt").mkdir()
+    for name, why in [
+        ("empty.pt", "empty file"),
+        ("text.pt", "not a torch zip archive"),
+        ("folder.pt", "is a folder"),
+    ]:
+        cfg.loops.checkpoint = str(tmp_path / name)
+        with pytest.raises(CheckpointError, match=rf"{name}: .*{why}"):
+            SlamPipeline(reader, cfg, progress=False)
 
 
 def test_run_takes_one_scene_name_and_runs_once(reader, scenes):
