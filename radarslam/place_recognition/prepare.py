@@ -359,6 +359,13 @@ def prepare(
                   sample_tokens=idx.sample_tokens, versions=idx.versions)  # fmt: skip
     with np.load(out / FRAMES_FILE, allow_pickle=False) as z:
         idx = KeyFrameIndex(**{k: z[k] for k in KeyFrameIndex.__dataclass_fields__})
+    # The split needs only the key frames' poses and times: one that cannot be made (a single
+    # capture day, say) fails now, not after the clouds' accumulation.
+    split = (
+        make_split(idx.positions_xy, idx.timestamps_us, idx.scene_names, cfg.split)
+        if "split" in todo
+        else None
+    )
 
     if "clouds" in todo:
         if on_stage:
@@ -371,10 +378,9 @@ def prepare(
         _save_npz(out / IMAGES_FILE, config_hash=stage_hash(cfg, "clouds"),
                   occupancy_packed=occ, extra=extra, width=np.int64(cfg.image.size_px))  # fmt: skip
 
-    if "split" in todo:
+    if split is not None:
         if on_stage:
             on_stage("split")
-        split = make_split(idx.positions_xy, idx.timestamps_us, idx.scene_names, cfg.split)
         _save_npz(out / SPLIT_FILE, config_hash=stage_hash(cfg, "split"),
                   sequences=split.sequences, **split.splits)  # fmt: skip
         write_json_atomic(out / SPLIT_JSON, split.counts)

@@ -86,6 +86,16 @@ def test_prepare_errors(tmp_path, mini_dataroot, mini_config):
         prepare(bad, tmp_path, progress=False)
     with pytest.raises(DataError, match="does not exist"):
         load_prepared(tmp_path / "nope")
+    # one scene is one capture day: the held-out days would be all of them, said before the
+    # clouds are accumulated
+    one_day = mini_config(mini_dataroot, name="one_day")
+    one_day = one_day.model_copy(
+        update={"source": one_day.source.model_copy(update={"max_scenes": 1})}
+    )
+    stages: list[str] = []
+    with pytest.raises(DataError, match=r"only 1 capture day\(s\)"):
+        prepare(one_day, tmp_path, progress=False, on_stage=stages.append)
+    assert stages == ["frames"]
 
 
 def test_parallel_clouds_identical(mini_dataroot, mini_config, mini_prepared, tmp_path):
