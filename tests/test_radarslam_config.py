@@ -92,6 +92,9 @@ def test_bad_yaml_and_missing_file(tmp_path):
         load_config(Outer, path)
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(Outer, tmp_path / "missing.yaml")
+    (tmp_path / "folder.yaml").mkdir()
+    with pytest.raises(ConfigError, match=r"folder\.yaml: is a folder, not a config file"):
+        load_config(Outer, tmp_path / "folder.yaml")
     with pytest.raises(ConfigError, match="not of the form"):
         apply_overrides({}, ["novalue"])
     with pytest.raises(ConfigError, match="is not a section"):

@@ -167,6 +167,8 @@ def read_results(results_dir: str | Path) -> ResultsFolder:
     KITTI poses are read with the timestamps of another TUM file of the session.
     """
     d = Path(results_dir)
+    if d.is_file():
+        raise DataError(f"{d}: is a file, not a results folder")
     if not d.is_dir():
         raise DataError(f"{d}: results folder does not exist")
     run = d / "run.json"

@@ -11,6 +11,8 @@ def read_text(path: str | Path, what: str = "file", error: type[RadarSlamError] 
     """The UTF-8 text of ``path``; ``error`` naming the file when it is missing, unreadable or
     not text (``what`` says which kind of file was expected)."""
     path = Path(path)
+    if path.is_dir():
+        raise error(f"{path}: is a folder, not a {what}")
     if not path.is_file():
         raise error(f"{path}: {what} does not exist")
     try:

@@ -105,6 +105,8 @@ def parse_pcd_bytes(data: bytes, path: str | Path = "<bytes>") -> np.ndarray:
         try:
             line = data[pos:end].decode("ascii").strip()
         except UnicodeDecodeError:
+            if header:  # header lines were read, then binary data without a DATA line
+                raise DataError(f"{path}: header has no 'DATA' line before its data") from None
             raise DataError(f"{path}: header is not ASCII (not a .pcd file?)") from None
         pos = end + 1
         if not line or line.startswith("#"):

@@ -115,6 +115,10 @@ def test_eval_cli(tmp_path):
 def test_eval_errors(tmp_path):
     with pytest.raises(DataError, match="does not exist"):
         evaluate_results(tmp_path / "nope")
+    (tmp_path / "file").write_text("")
+    with pytest.raises(DataError, match="is a file, not a results folder"):
+        evaluate_results(tmp_path / "file")
+    (tmp_path / "file").unlink()
     with pytest.raises(DataError, match="no poses_"):
         evaluate_results(tmp_path)
     _results(tmp_path, with_loops=False)

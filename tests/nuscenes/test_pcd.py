@@ -114,6 +114,7 @@ def test_file_roundtrip_and_missing(tmp_path):
         ),
         (b"\xff\xfe garbage\n" * 3, "not ASCII"),
         (b"# comment\n" + b"VERSION 0.7\n" * 70, "no 'DATA' line"),
+        (header(3).replace(b"DATA binary\n", b"") + b"\xff\xfe\x01\n" * 8, "no 'DATA' line before"),
     ],
 )
 def test_malformed(data, match):
