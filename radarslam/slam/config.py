@@ -63,11 +63,6 @@ class LoopDetectionConfig(StrictModel):
     proximity_radius_m: float | None = Field(10.0, gt=0.0)
     #: Proximity candidates verified per key frame (nearest first, one per other session).
     proximity_candidates: int = Field(1, ge=1, le=10)
-    #: Where the proximity search looks for a key frame: "latest_loop" chains its odometry from
-    #: its session's latest loop with another session of the group (near a loop the error of the
-    #: placements cancels); "link": the placement of its session when the groups were linked,
-    #: whose heading error grows into metres along a long session.
-    proximity_origin: Literal["latest_loop", "link"] = "latest_loop"
     #: Proximity verification starts from the map's prediction, so it looks only at points
     #: within this range (None: all) and uses a lower tight-fitness threshold than the global
     #: search.

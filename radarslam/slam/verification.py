@@ -124,14 +124,14 @@ class Verification:
         )
 
     def placed(self, query: KeyFrame) -> np.ndarray:
-        """group_from_query where the proximity search looks (``loops.proximity_origin``): the
-        key frames of a group are placed by link @ odometry, and the query is too, either
-        through its session's link or chained from its session's latest loop with another
-        session of the group."""
+        """group_from_query where the proximity search looks: chained from the query's
+        session's latest loop with another session of the group (near a loop the errors of the
+        placements cancel), else through its session's link (link @ odometry, whose heading
+        error grows into metres along a long session)."""
         state = self.state
         qs = state.sessions[query.key.session]
         last = self._last_loop.get((qs.name, None))
-        if self.config.loops.proximity_origin == "latest_loop" and last is not None:
+        if last is not None:
             return self._chained(query, last)
         return state.groups[qs.group].from_session[qs.name] @ query.odometry_pose
 

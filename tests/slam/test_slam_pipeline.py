@@ -770,26 +770,23 @@ def test_outside_the_map_guesses_chain_from_the_latest_loop(reader):
     assert np.linalg.norm(placed[:2, 3] - truth[:2, 3]) == pytest.approx(3.0)
 
 
-@pytest.mark.parametrize("origin, found", [("latest_loop", True), ("link", False)])
-def test_proximity_search_looks_where_the_latest_loop_places_the_key_frame(reader, origin, found):
+def test_proximity_search_looks_where_the_latest_loop_places_the_key_frame(reader):
     # The link's placement is 12 m off by now, beyond the 10 m search radius; chained from B's
     # latest loop, B's newest key frame lies on C's where it truly is.
-    pipeline, c_from_b_true, b1, c1 = _two_linked_sessions(
-        reader, 12.0, proximity_origin=origin, exclude_recent_s=0.0
-    )
+    pipeline, c_from_b_true, b1, c1 = _two_linked_sessions(reader, 12.0, exclude_recent_s=0.0)
     group = pipeline.groups[pipeline.sessions["C"].group]
     c1_in_group = pipeline.state.pose_in_group(c1)
     link_m = np.hypot(*(pipeline.state.pose_in_group(b1) - c1_in_group)[:2, 3])
     assert 11.0 < link_m < 13.0
     b1_in_group = pipeline.verification.placed(b1)
-    if origin == "latest_loop":
-        np.testing.assert_allclose(
-            b1_in_group, group.from_session["C"] @ c_from_b_true @ b1.odometry_pose, atol=1e-9
-        )
-    else:
-        np.testing.assert_allclose(b1_in_group, group.from_session["B"] @ b1.odometry_pose)
+    np.testing.assert_allclose(
+        b1_in_group, group.from_session["C"] @ c_from_b_true @ b1.odometry_pose, atol=1e-9
+    )
     proposals = pipeline._proximity.candidates(pipeline.sessions["B"], b1, among={"C"})
-    assert [p.candidate.key for p in proposals] == ([c1.key] if found else [])
+    assert [p.candidate.key for p in proposals] == [c1.key]
+    # through the link's placement alone, B's key frame would lie 12 m from C's: out of reach
+    by_link = group.from_session["B"] @ b1.odometry_pose
+    assert np.hypot(*(by_link - c1_in_group)[:2, 3]) > pipeline.config.loops.proximity_radius_m
 
 
 class _SlidVerifier:
