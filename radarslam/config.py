@@ -7,12 +7,13 @@ YAML key fails loudly instead of being silently ignored.
 from __future__ import annotations
 
 import contextlib
+import types
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
-from pydantic_core import PydanticKnownError
+from pydantic_core import PydanticCustomError, PydanticKnownError
 
 from radarslam.errors import ConfigError
 from radarslam.io.text import read_text
@@ -38,12 +39,40 @@ class StrictModel(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_for_a_number(cls, value: Any, info: ValidationInfo) -> Any:
+        # pydantic reads true as 1 for a number: `--set fusion.gate_chi2=true` would be a gate of 1
+        if isinstance(value, bool) and info.field_name is not None:
+            field = cls.model_fields.get(info.field_name)
+            if field is not None and not _accepts_bool(field.annotation):
+                raise PydanticCustomError(
+                    "bool_for_a_number",
+                    "a yes/no value where this setting takes a number or a name",
+                )
+        return value
+
     @field_validator("*", mode="after")
     @classmethod
     def _seed_not_negative(cls, value: Any, info: ValidationInfo) -> Any:
         if info.field_name == "seed" and isinstance(value, int) and value < 0:
             raise PydanticKnownError("greater_than_equal", {"ge": 0})
         return value
+
+
+def _accepts_bool(annotation: Any) -> bool:
+    """Whether a field of this type takes a yes/no value (bool, a bool Literal, Any, a union with
+    either); a model (a section) is left to its own validation."""
+    if annotation is bool or annotation is Any:
+        return True
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return True
+    origin = get_origin(annotation)
+    if origin is Literal:
+        return any(isinstance(a, bool) for a in get_args(annotation))
+    if origin in (Union, types.UnionType, Annotated):
+        return any(_accepts_bool(a) for a in get_args(annotation))
+    return False
 
 
 def _got(value: Any) -> str:

@@ -181,3 +181,15 @@ def test_duplicate_yaml_keys_name_the_file_key_and_line(tmp_path, text, line, ke
         load_config(Outer, path)
     assert str(exc.value).startswith(f"{path}: line {line} ")
     assert f"duplicate key {key!r}" in str(exc.value)
+
+
+def test_a_yes_no_value_is_refused_for_a_number_or_a_name():
+    # pydantic alone reads `true` as 1: a gate of 1, one iteration
+    from radarslam.odometry.config import OdometryConfig
+
+    for key in ("fusion.gate_chi2", "registration.max_num_iterations", "fusion.mode"):
+        with pytest.raises(ConfigError, match=rf"'{key}': a yes/no value where"):
+            load_config(OdometryConfig, None, [f"{key}=true"])
+    # where a setting is a yes/no, or may be null, it still is
+    cfg = load_config(OdometryConfig, None, ["points.deskew=false", "fusion.max_twist_rate=null"])
+    assert cfg.points.deskew is False and cfg.fusion.max_twist_rate is None
