@@ -304,4 +304,10 @@ def _components(run: Path, meta: dict, sessions: list[str]) -> list[list[str]] |
             f"{run}: 'components' must be a non-empty list of non-empty lists of the sessions "
             "it lists"
         )
+    # A session lies in one component at most (the joint ATE aligns each component once; a
+    # session without key frames is in none).
+    listed = [s for c in comps for s in c]
+    twice = sorted({s for s in listed if listed.count(s) > 1})
+    if twice:
+        raise DataError(f"{run}: 'components' lists {', '.join(twice)} more than once")
     return comps

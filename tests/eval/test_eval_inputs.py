@@ -64,6 +64,9 @@ def test_run_json_that_is_binary_or_has_empty_components(tmp_path):
     run.write_text(json.dumps({**meta, "components": [[], ["scene-a", "scene-b"]]}))
     with pytest.raises(DataError, match=r"run\.json: 'components'"):
         evaluate_results(tmp_path, _cfg())
+    run.write_text(json.dumps({**meta, "components": [["scene-a"], ["scene-a", "scene-b"]]}))
+    with pytest.raises(DataError, match=r"run\.json: 'components' lists scene-a more than once"):
+        evaluate_results(tmp_path, _cfg())
 
 
 @pytest.mark.parametrize(
