@@ -12,6 +12,8 @@ from radarslam.errors import CheckpointError
 def check_archive(path: Path) -> None:
     """A checkpoint is a torch zip archive: anything else fails here with a short reason (torch's
     own messages for such files are several sentences about ``weights_only``)."""
+    if path.is_dir():
+        raise CheckpointError(f"{path}: is a folder, not a checkpoint file")
     try:
         with path.open("rb") as fh:
             head = fh.read(4)

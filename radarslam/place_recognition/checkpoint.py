@@ -102,7 +102,7 @@ def _first_sentence(exc: BaseException, limit: int = 120) -> str:
 def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
     """The verified payload of a checkpoint (weights still in their stored dtype)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise CheckpointError(f"{path}: checkpoint file does not exist")
     check_archive(path)
     try:

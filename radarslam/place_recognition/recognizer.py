@@ -39,12 +39,10 @@ def checkpoint_path(checkpoint: str | Path | None) -> Path:
     """The checkpoint file to load (None: the shipped compact weights); CheckpointError if it
     is not there."""
     path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
-    if path.is_dir():
-        raise CheckpointError(f"{path}: is a folder, not a checkpoint file")
-    if not path.is_file():
+    if not path.exists():
         hint = "" if checkpoint is not None else " (default compact weights not installed)"
         raise CheckpointError(f"{path}: checkpoint not found{hint}")
-    check_archive(path)  # an empty, truncated or foreign file fails here, without torch
+    check_archive(path)  # a folder, an empty, truncated or foreign file fails here, without torch
     return path
 
 

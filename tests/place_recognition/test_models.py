@@ -241,6 +241,9 @@ def test_corrupt_checkpoints_are_checkpoint_errors(tmp_path):
     with pytest.raises(CheckpointError, match="not a radarslam AutoPlace checkpoint"):
         load_model(other)
 
+    (tmp_path / "folder.pt").mkdir()
+    with pytest.raises(CheckpointError, match=r"folder\.pt: is a folder, not a checkpoint file"):
+        read_checkpoint(tmp_path / "folder.pt")
     with pytest.raises(CheckpointError, match=r"missing\.pt: checkpoint file does not exist"):
         load_model(tmp_path / "missing.pt")
 
