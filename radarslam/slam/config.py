@@ -136,8 +136,8 @@ class SlamConfig(StrictModel):
     #: yaw's sigma is below this (deg), so a run of many scenes pays for the few it takes to
     #: converge, and the run applies the estimate from its first frame only if it got there
     #: (None: every scene, applied in any case). From the second scene on the pass also gives
-    #: up once the scenes left could not get there (``feed.PASS_PROJECTION_SLACK``): the demo's
-    #: six 20 s scenes stop after two.
+    #: up once the scenes left could not get there
+    #: (``calibration_pass.PASS_PROJECTION_SLACK``): the demo's six 20 s scenes stop after two.
     calibration_pass_max_sigma_deg: float | None = Field(0.1, gt=0.0)
     #: Run the odometry (reading, Doppler, kiss-icp, key-frame clouds) in a forked process while
     #: this one does the key-frame work (recognition, registration, iSAM2): on two cores the two

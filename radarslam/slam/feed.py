@@ -10,21 +10,25 @@ key-frame work (recognition, registration, iSAM2) overlap, with identical result
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import itertools
 import logging
 import os
-import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from radarslam.errors import DataError
+from radarslam.slam.processes import (
+    REAP_EVERY_S,
+    Failed,
+    end_helper,
+    helper_process_setup,
+    one_torch_thread,
+    put_error,
+)
 from radarslam.types import AccumulatedCloud, SceneInfo
 
 log = logging.getLogger("radarslam.odometry")
@@ -127,13 +131,6 @@ class OdometryDone:
     timings: dict[str, Any]
     calibration: dict | None = None
     calibrations: list[dict] = field(default_factory=list)
-
-
-@dataclass(frozen=True)
-class Failed:
-    """A helper process's error, raised again by the process that receives it."""
-
-    error: BaseException
 
 
 #: The timings the odometry side measures (the rest are the key-frame side's).
@@ -373,22 +370,22 @@ class OdometryFeed:
                 proc.join()
         finally:
             for proc in procs.values():
-                _end_helper(proc, stop_now=True)
+                end_helper(proc, stop_now=True)
 
     def _consume(self, infos, handle, procs, messages, finished, all_threads) -> None:
         """Hand the odometry process's messages to ``handle`` until :class:`OdometryDone`."""
         import queue as queue_mod
 
-        reap_at = time.monotonic() + _REAP_EVERY_S
+        reap_at = time.monotonic() + REAP_EVERY_S
         while True:
             if time.monotonic() >= reap_at:
                 # is_alive() collects a helper that has ended (the reader, seconds before the
                 # odometry): were this process killed meanwhile, it would be left to init.
                 for proc in procs.values():
                     proc.is_alive()
-                reap_at = time.monotonic() + _REAP_EVERY_S
+                reap_at = time.monotonic() + REAP_EVERY_S
             try:
-                message = messages.get(timeout=_REAP_EVERY_S)
+                message = messages.get(timeout=REAP_EVERY_S)
             except queue_mod.Empty:
                 for what, proc in procs.items():
                     # the reader may be done (exit code 0) long before the odometry
@@ -414,307 +411,9 @@ class OdometryFeed:
 # --- the calibration pass ------------------------------------------------------------------------
 
 
-#: How far a calibration pass may be from its sigma limit and still go on: it stops once the
-#: scenes left, with the sigma shrinking as 1/sqrt(drive time), could not bring it below this
-#: many times the limit. From the second scene on, the final sigma came out 0.65-1.3x that
-#: projection on the demo, the city benchmark and subset, and the real Boston scenes.
-PASS_PROJECTION_SLACK = 2.0
-
-
-@dataclass(frozen=True)
-class CalibrationPassResult:
-    """What a calibration pass found: ``calibration`` (``DopplerCalibration.as_dict()``),
-    whether every mounting yaw's sigma got below the limit, and over how many scenes."""
-
-    calibration: dict
-    converged: bool
-    scenes_used: int
-    scenes_total: int
-    rigs: int = 1  # radar rigs (vehicles) among the scenes used
-
-    @property
-    def max_sigma_deg(self) -> float:
-        return max(self.calibration.get("mounting_yaw_sigma_deg", {}).values(), default=np.nan)
-
-
-def count_rigs(reader, infos) -> int:
-    """How many radar rigs the scenes come from, by their radars' nominal extrinsics
-    (``reader.scene_extrinsics``, no file read) and the rule the odometry uses to tell rigs
-    apart (:func:`~radarslam.odometry.pipeline.find_rig`)."""
-    from radarslam.odometry.pipeline import find_rig, merge_extrinsics, nominal_extrinsics
-
-    rigs: list[dict[str, bytes]] = []
-    current = None
-    for info in infos:
-        ext = nominal_extrinsics(reader.scene_extrinsics(info))
-        if not ext:
-            continue
-        current = find_rig(rigs, ext, current)
-        if current is None:
-            rigs.append(ext)
-            current = len(rigs) - 1
-        else:
-            merge_extrinsics(rigs[current], ext)
-    return len(rigs)
-
-
-def estimate_calibration(
-    reader,
-    infos,
-    config,
-    frame_filter,
-    max_sigma_deg: float | None,
-    progress: bool = False,
-    continue_log_scenes: bool = True,
-) -> CalibrationPassResult:
-    """The odometry (``config``) over the scenes in order, each from a reset as in a SLAM run
-    (with ``continue_log_scenes``, a scene that continues the one before it drives on),
-    until every mounting yaw's sigma is below ``max_sigma_deg`` (None: every scene). From the
-    second scene on it also stops once the key frames left could not get there
-    (:data:`PASS_PROJECTION_SLACK`): a run of short scenes then does not pay for a pass it cannot
-    use."""
-    from radarslam.odometry.pipeline import RadarOdometry
-
-    odometry = RadarOdometry(config)
-    rigs = count_rigs(reader, infos)
-    if rigs > 1:  # one set of mounting yaws cannot serve several cars: no pass
-        return CalibrationPassResult(odometry.calibration.as_dict(), False, 0, len(infos), rigs)
-    # key frames as the measure of drive time: known for every scene before it is read
-    samples = np.cumsum([max(info.nbr_samples, 1) for info in infos])
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(infos), unit="scene", desc="calibration pass", leave=False)
-
-    def result(used: int, converged: bool) -> CalibrationPassResult:
-        return CalibrationPassResult(odometry.calibration.as_dict(), converged, used, len(infos))
-
-    def read(info: SceneInfo):
-        return reader.iter_frames(info, filters=frame_filter)
-
-    drives = scene_drives(infos, read, config.fusion.max_gap_s * 1e6, continue_log_scenes)
-    try:
-        for i, drive in enumerate(drives):
-            if drive.continues is not None:
-                odometry.fold_calibration()
-            else:
-                odometry.reset()
-            for frame in drive.frames:
-                odometry.process(frame)
-            if bar is not None:
-                bar.update(1)
-            if max_sigma_deg is None:
-                continue
-            found = result(i + 1, False)
-            if found.max_sigma_deg < max_sigma_deg:
-                return dataclasses.replace(found, converged=True)
-            projected = found.max_sigma_deg * np.sqrt(samples[i] / samples[-1])
-            if i >= 1 and projected > PASS_PROJECTION_SLACK * max_sigma_deg:
-                return found
-    finally:
-        if bar is not None:
-            bar.close()
-    return result(len(infos), max_sigma_deg is None)
-
-
-def calibration_pass(
-    reader,
-    infos,
-    config,
-    frame_filter,
-    max_sigma_deg: float | None,
-    progress: bool = False,
-    forked: bool = True,
-    continue_log_scenes: bool = True,
-) -> CalibrationPassResult:
-    """:func:`estimate_calibration`, with ``forked`` in a forked process as the run's odometry
-    is: kiss-icp may ``abort()`` the process it runs in, which then ends with a clear error
-    instead of taking this one with it."""
-    estimate = functools.partial(
-        estimate_calibration,
-        reader,
-        infos,
-        config,
-        frame_filter,
-        max_sigma_deg,
-        progress,
-        continue_log_scenes,
-    )
-    if not forked:
-        return estimate()
-    import multiprocessing as mp
-    import queue as queue_mod
-
-    from radarslam.io.atomic import interrupts_deferred
-
-    ctx = mp.get_context("fork")
-    results = ctx.Queue(maxsize=1)
-    proc = ctx.Process(  # fork: the partial is not pickled
-        target=_calibration_process,
-        args=(estimate, results, os.getpid()),
-        name="slam-calibration",
-    )
-    proc.daemon = True
-    with interrupts_deferred():  # as in OdometryFeed.run_forked
-        proc.start()
-    finished = False
-    try:
-        while True:
-            try:
-                message = results.get(timeout=_REAP_EVERY_S)
-            except queue_mod.Empty:
-                if not proc.is_alive():
-                    raise DataError(
-                        f"the calibration pass process ended without finishing (exit code "
-                        f"{proc.exitcode}; scenes {infos[0].name}..)"
-                    ) from None
-                continue
-            finished = True
-            if isinstance(message, Failed):
-                raise message.error
-            return message
-    finally:
-        # Ctrl-C or an error here: the helper ignores SIGINT, stop it now
-        _end_helper(proc, stop_now=not finished)
-
-
-def _calibration_process(estimate: Callable[[], CalibrationPassResult], results, parent) -> None:
-    try:
-        helper_process_setup(parent)
-        results.put(estimate())
-    except BaseException as exc:  # handed to the parent, which raises it
-        _put_error(results, exc, "calibration pass process")
-    finally:
-        results.close()
-        results.join_thread()
-
-
-# --- the helper processes ------------------------------------------------------------------------
-
-
-def _end_helper(proc, stop_now: bool) -> None:
-    """Wait for a helper process to end; with ``stop_now`` SIGTERM it first (which ends it at
-    once, :func:`helper_process_setup`); one still alive after 5 s is killed."""
-    if stop_now and proc.is_alive():
-        proc.terminate()
-    proc.join(timeout=5.0)
-    if proc.is_alive():
-        proc.kill()
-        proc.join()
-
-
-@contextmanager
-def one_torch_thread():
-    """torch's intra-op pool down to one thread while the odometry process has the other core:
-    two threads then only contend (12-scene city run: 31 s with one, 38 s with two). Yields a
-    function that gives the pool its threads back, for when the odometry process is done."""
-    torch = sys.modules.get("torch")  # never imported just for this
-    if torch is None:
-        yield lambda: None
-        return
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-
-    def restore() -> None:
-        if torch.get_num_threads() != previous:
-            torch.set_num_threads(previous)
-
-    try:
-        yield restore
-    finally:
-        restore()
-
-
-def can_fork() -> bool:
-    import multiprocessing as mp
-
-    return "fork" in mp.get_all_start_methods()
-
-
 #: Frames per message from the reading process: one queue round trip per frame costs more than
 #: the frame's pickle.
 _FRAME_BATCH = 16
-
-
-#: Niceness added to the reading and odometry processes. On two cores the three processes share
-#: the cores, and the key-frame side (recognition, verification, iSAM2), the longest serial chain,
-#: fell behind while the other two ran, then caught up alone with one core idle for ~10 s at the
-#: end. Lower priority for the other two lets it keep up: the benchmark's run went from 14.4-14.8x
-#: to 15.1-15.8x real time in interleaved runs, identical results. With more cores than busy
-#: processes it changes nothing.
-HELPER_NICENESS = 5
-
-
-def _lower_priority() -> None:
-    try:
-        os.nice(HELPER_NICENESS)
-    except (AttributeError, OSError):  # no nice() here: the run is only slower
-        pass
-
-
-#: prctl(2) option: the signal a process receives when its parent dies (Linux).
-_PR_SET_PDEATHSIG = 1
-
-#: Seconds between two checks of the parent where prctl is not available.
-PARENT_CHECK_S = 0.5
-
-
-def die_with_parent(parent: int, pdeathsig: bool = True) -> None:
-    """End this forked process when ``parent`` dies, whatever it is doing then.
-
-    A parent killed hard (``kill -9``, the OOM killer) runs no cleanup: a helper blocked on a
-    full queue or in its queue's feeder would wait forever, reparented to init. Linux kills it
-    with SIGKILL (nothing of a helper's needs cleaning up: its queues die with the run);
-    elsewhere a thread notices the new parent id within :data:`PARENT_CHECK_S`. The parent may
-    have died before this runs, hence the check after prctl."""
-    armed = False
-    if pdeathsig and sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        try:
-            libc = ctypes.CDLL(None, use_errno=True)
-            armed = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
-        except (OSError, AttributeError):  # no prctl in this libc: the thread below
-            armed = False
-    if os.getppid() != parent:
-        os._exit(1)
-    if armed:
-        return
-    import threading
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(PARENT_CHECK_S)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
-def helper_process_setup(parent: int) -> None:
-    """First thing the reading and odometry processes do. Ctrl-C reaches every process of the
-    terminal's process group: the helpers ignore it (a second one would otherwise print their
-    tracebacks) and the parent, which gets the KeyboardInterrupt, stops them. SIGTERM
-    (``Process.terminate``) ends them at once, even inside compiled code, instead of going
-    through a Python handler inherited from the command line."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    die_with_parent(parent)
-    _lower_priority()
-
-
-#: Seconds between two collections of ended helper processes by the parent.
-_REAP_EVERY_S = 0.5
-
-
-def _put_error(queue, exc: BaseException, what: str) -> None:
-    try:
-        queue.put(Failed(exc))
-    except Exception:  # an unpicklable error: say what it was
-        queue.put(Failed(DataError(f"{what}: {type(exc).__name__}: {exc}")))
 
 
 def _reading_process(reader, infos, filters, frames, parent: int) -> None:
@@ -739,7 +438,7 @@ def _reading_process(reader, infos, filters, frames, parent: int) -> None:
             frames.put(SceneEnd(info.name))
         frames.put(ReadingDone(data_s))
     except BaseException as exc:  # handed to the odometry process, which raises it
-        _put_error(frames, exc, "reading process")
+        put_error(frames, exc, "reading process")
     finally:
         frames.close()
         frames.join_thread()
@@ -797,7 +496,7 @@ def _odometry_process(feed, infos, messages, finished, parent: int, frames=None)
             )
         )
     except BaseException as exc:  # handed to the parent, which raises it
-        _put_error(messages, exc, "odometry process")
+        put_error(messages, exc, "odometry process")
     finally:
         messages.close()
         messages.join_thread()

@@ -29,12 +29,14 @@
    g. accepted loops become robust factors; iSAM2 receives only the new factors and values.
 3. A final batch Levenberg-Marquardt, the static map, and the results folder.
 
-Where each part lives: the odometry side and its processes in :mod:`radarslam.slam.feed`; the
-sessions, groups and key frames in :mod:`radarslam.slam.state`; the candidate sources (2c, 2e,
-2f) in :mod:`radarslam.slam.proposers`; the verifier variants and predictions
-(2d) in :mod:`radarslam.slam.verification`; votes and merges in
-:mod:`radarslam.slam.linking`; factors into the graph (2b, 2g) in :mod:`radarslam.slam.insertion`;
-the result in :mod:`radarslam.slam.result`. This module holds them together.
+Where each part lives: the odometry side (step 1) in :mod:`radarslam.slam.feed`, the helper
+processes it runs in with ``pipelined`` in :mod:`radarslam.slam.processes`, the calibration pass
+in :mod:`radarslam.slam.calibration_pass`; the sessions, groups and key frames in
+:mod:`radarslam.slam.state`; the candidate sources (2c, 2e, 2f) in :mod:`radarslam.slam.proposers`;
+the verifier variants and predictions (2d) in :mod:`radarslam.slam.verification`; votes and merges
+in :mod:`radarslam.slam.linking`; factors into the graph (2b, 2g) in
+:mod:`radarslam.slam.insertion`; the result in :mod:`radarslam.slam.result`. This module holds
+them together.
 
 Step 1 (and the key-frame clouds) never depends on steps 2b-2g, so with ``pipelined`` (default)
 it runs in a forked process that streams key-frame clouds to this one: on two cores odometry and
@@ -79,10 +81,10 @@ from radarslam.slam.feed import (
     OdometryFeed,
     SessionSpan,
     SessionStart,
-    can_fork,
 )
 from radarslam.slam.insertion import GraphInsertion
 from radarslam.slam.linking import SessionLinker
+from radarslam.slam.processes import can_fork
 from radarslam.slam.proposers import (
     CandidateProposer,
     Proposal,
@@ -257,7 +259,7 @@ class SlamPipeline:
         configured calibration (:class:`OdometryFeed`)."""
         from radarslam.odometry.pipeline import RadarOdometry
         from radarslam.odometry.run import second_pass, single_pass
-        from radarslam.slam.feed import calibration_pass
+        from radarslam.slam.calibration_pass import calibration_pass
 
         odo = self.config.odometry
         if odo.fusion.calibration.passes < 2 or odo.fusion.calibration.yaw_bias_model != "mounting":

@@ -108,7 +108,7 @@ def test_helpers_die_with_a_run_killed_hard(tiny_dataroot, tmp_path):
 
 
 def test_without_prctl_a_helper_notices_its_parent_is_gone():
-    from radarslam.slam import feed
+    from radarslam.slam import processes
 
     with subreaper():
         r, w = os.pipe()
@@ -118,7 +118,7 @@ def test_without_prctl_a_helper_notices_its_parent_is_gone():
                 parent = os.getpid()  # not the helper's getppid(): the parent may be gone by then
                 helper = os.fork()
                 if helper == 0:
-                    feed.die_with_parent(parent, pdeathsig=False)
+                    processes.die_with_parent(parent, pdeathsig=False)
                     time.sleep(30)
                     os._exit(0)
                 os.write(w, str(helper).encode())
@@ -133,4 +133,4 @@ def test_without_prctl_a_helper_notices_its_parent_is_gone():
         took = time.monotonic() - t0
         _kill_and_collect(left)
     assert not left, "the helper kept running after its parent died"
-    assert took < 2 * feed.PARENT_CHECK_S + 0.5
+    assert took < 2 * processes.PARENT_CHECK_S + 0.5

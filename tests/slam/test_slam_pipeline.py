@@ -559,7 +559,7 @@ def test_a_dead_reading_or_odometry_process_is_a_clear_error(reader, scenes):
 def test_reading_and_odometry_processes_yield_to_the_key_frame_side(reader, scenes):
     import os
 
-    from radarslam.slam.feed import HELPER_NICENESS
+    from radarslam.slam.processes import HELPER_NICENESS
 
     # each process reports its niceness in an error, the one thing that comes back from it
     ours = os.nice(0)
@@ -859,7 +859,7 @@ def test_every_registration_takes_the_verifiers_persistence_filter(reader, min_n
 
 def test_torch_runs_on_one_thread_until_the_odometry_process_is_done():
     torch = pytest.importorskip("torch")
-    from radarslam.slam.feed import one_torch_thread
+    from radarslam.slam.processes import one_torch_thread
 
     previous = torch.get_num_threads()
     torch.set_num_threads(2)
