@@ -44,17 +44,22 @@ the process when it does).
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import math
 import time
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from radarslam.errors import ConfigError, DataError
 from radarslam.geometry import invert, rigid_problem
+from radarslam.odometry.calibration import (
+    DopplerCalibration,
+    Rig,
+    find_rig,
+    merge_extrinsics,
+    rig_extrinsics,
+    with_mounting,
+)
 from radarslam.odometry.config import OdometryConfig
 from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit, TwistBounds
 from radarslam.odometry.lie import adjoint_se2, exp_jacobian_twist, exp_se2, log_se2, planar
@@ -94,49 +99,6 @@ class OdometryResult:
     #: Set on key frames (except a segment's first): motion since the previous key frame.
     key_frame_motion: np.ndarray | None = None
     key_frame_covariance: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
-class DopplerCalibration:
-    """The Doppler calibration the fusion filter has estimated so far: each state's value and
-    sigma. ``yaw_bias_model`` says which yaw states exist: "per_metre" (rad/m), "rate" (rad/s),
-    "mounting" (one mounting-yaw error per radar, rad) or "none"."""
-
-    yaw_bias_model: str
-    yaw_states: tuple[float, ...]
-    yaw_sigmas: tuple[float, ...]
-    speed_scale_error: float  # true speed = Doppler speed x (1 + this)
-    speed_scale_sigma: float
-    #: The radars' Doppler scale the fit undid (``doppler.speed_scale_error``, configured): they
-    #: read (1 + this) x the true radial velocity; ``speed_scale_error`` is what is left.
-    radar_speed_scale_error: float = 0.0
-    #: The radar rig this calibration belongs to (:func:`rig_id`) and the scenes driven with it.
-    rig: str = ""
-    scenes: tuple[str, ...] = ()
-
-    def as_dict(self) -> dict:
-        out: dict = {
-            "yaw_bias_model": self.yaw_bias_model,
-            "radar_speed_scale_error": self.radar_speed_scale_error,
-        }
-        if self.rig:
-            out["rig"] = self.rig
-            out["scenes"] = list(self.scenes)
-        deg = [math.degrees(v) for v in self.yaw_states]
-        deg_sig = [math.degrees(v) for v in self.yaw_sigmas]
-        if self.yaw_bias_model == "mounting":
-            out["mounting_yaw_error_deg"] = dict(zip(RADAR_CHANNELS, deg, strict=True))
-            out["mounting_yaw_sigma_deg"] = dict(zip(RADAR_CHANNELS, deg_sig, strict=True))
-        elif self.yaw_bias_model == "per_metre":
-            out["yaw_bias_deg_per_100m"] = 100.0 * deg[0]
-            out["yaw_bias_sigma_deg_per_100m"] = 100.0 * deg_sig[0]
-        elif self.yaw_bias_model == "rate":
-            out["yaw_bias_deg_per_s"] = deg[0]
-            out["yaw_bias_sigma_deg_per_s"] = deg_sig[0]
-        if self.yaw_bias_model != "none":
-            out["speed_scale_error"] = self.speed_scale_error
-            out["speed_scale_sigma"] = self.speed_scale_sigma
-        return out
 
 
 @dataclass(frozen=True)
@@ -266,98 +228,6 @@ def _where(frame: RadarFrame) -> str:
     return f"frame at {frame.timestamp_us!r} us (scene {frame.scene_name or '?'})"
 
 
-def mounting_rotations(mounting_yaw_deg: dict[str, float]) -> dict[str, np.ndarray]:
-    """Per channel, the 4x4 sensor rotation by its mounting-yaw error (deg)."""
-    return {
-        ch: exp_se2(np.array([0.0, 0.0, math.radians(deg)])) for ch, deg in mounting_yaw_deg.items()
-    }
-
-
-def nominal_extrinsics(ego_from_sensor: Mapping[str, np.ndarray]) -> dict[str, bytes]:
-    """Per channel, the nominal ``ego_from_sensor`` rounded to 0.1 mm and 1e-4 of a rotation
-    entry: what tells one vehicle's radar rig from another's."""
-    return {
-        ch: np.round(np.asarray(m, dtype=np.float64), 4).tobytes()
-        for ch, m in ego_from_sensor.items()
-    }
-
-
-def rig_extrinsics(frame: RadarFrame) -> dict[str, bytes]:
-    """:func:`nominal_extrinsics` of ``frame``'s sweeps."""
-    return nominal_extrinsics({ch: sw.ego_from_sensor for ch, sw in frame.sweeps.items()})
-
-
-def same_rig(a: dict[str, bytes], b: dict[str, bytes]) -> bool:
-    """Whether two sets of :func:`nominal_extrinsics` can be one rig: they share a channel and
-    no shared channel differs (a frame may lack any radar's sweep)."""
-    shared = a.keys() & b.keys()
-    return bool(shared) and all(a[ch] == b[ch] for ch in shared)
-
-
-def find_rig(
-    known: Sequence[dict[str, bytes]], extrinsics: dict[str, bytes], current: int | None
-) -> int | None:
-    """Index in ``known`` of the rig ``extrinsics`` belong to, or None for a new rig: the
-    ``current`` one while nothing contradicts it (no shared channel is no evidence), else the
-    first that shares a channel and agrees on all shared."""
-    if current is not None:
-        rig = known[current]
-        if same_rig(rig, extrinsics) or not rig.keys() & extrinsics.keys():
-            return current
-    return next((i for i, rig in enumerate(known) if same_rig(rig, extrinsics)), None)
-
-
-def merge_extrinsics(into: dict[str, bytes], extrinsics: dict[str, bytes]) -> None:
-    """Add the channels ``into`` has not shown yet."""
-    for ch, value in extrinsics.items():
-        into.setdefault(ch, value)
-
-
-def rig_id(extrinsics: dict[str, bytes]) -> str:
-    """A short stable name of a rig's nominal extrinsics (:func:`rig_extrinsics`)."""
-    h = hashlib.sha1()
-    for ch in sorted(extrinsics):
-        h.update(ch.encode())
-        h.update(extrinsics[ch])
-    return h.hexdigest()[:8]
-
-
-@dataclass
-class _Rig:
-    """One radar rig (a vehicle's nominal extrinsics) and the calibration estimated for it while
-    another rig's scenes run: mounting errors belong to a car, and nuScenes drives of several
-    cars can share one run."""
-
-    extrinsics: dict[str, bytes]
-    calib: np.ndarray
-    calib_cov: np.ndarray
-    folded: np.ndarray
-    scenes: list[str] = field(default_factory=list)
-
-    @property
-    def name(self) -> str:
-        return rig_id(self.extrinsics)
-
-    def learn(self, frame: RadarFrame) -> None:
-        """Add the nominal extrinsics of channels this rig has not shown yet."""
-        if frame.sweeps.keys() - self.extrinsics.keys():
-            merge_extrinsics(self.extrinsics, rig_extrinsics(frame))
-
-
-def with_mounting(frame: RadarFrame, rotations: dict[str, np.ndarray]) -> RadarFrame:
-    """``frame`` with each sweep's ``ego_from_sensor`` turned by its channel's rotation
-    (:func:`mounting_rotations`)."""
-    if not rotations:
-        return frame
-    sweeps = {
-        ch: dataclasses.replace(sw, ego_from_sensor=sw.ego_from_sensor @ rotations[ch])
-        if ch in rotations
-        else sw
-        for ch, sw in frame.sweeps.items()
-    }
-    return dataclasses.replace(frame, sweeps=sweeps)
-
-
 class RadarOdometry:
     """Streaming radar odometry: ``process(frame)`` once per frame, in time order.
 
@@ -390,8 +260,8 @@ class RadarOdometry:
         #: segment of another rig (nominal extrinsics differ) starts from that rig's calibration,
         #: or from the prior: a Singapore car's mounting errors applied to a Boston car's scenes
         #: moved those scenes' real ATE from 0.095 / 0.086 to 0.126 / 0.137 m.
-        self._rig: _Rig | None = None
-        self._rigs: list[_Rig] = []
+        self._rig: Rig | None = None
+        self._rigs: list[Rig] = []
         #: Bytes of the ego_from_sensor matrices already checked rigid: the calibration
         #: of a radar repeats in every sweep, so each is checked once, not 5 times a frame.
         self._good_calibrations: set[tuple[str, bytes]] = set()
@@ -476,7 +346,7 @@ class RadarOdometry:
         ]
 
     def _calibration_of(
-        self, calib: np.ndarray, calib_cov: np.ndarray, folded: np.ndarray, rig: _Rig | None
+        self, calib: np.ndarray, calib_cov: np.ndarray, folded: np.ndarray, rig: Rig | None
     ) -> DopplerCalibration:
         sig = np.sqrt(np.diag(calib_cov))
         n = len(calib) - 1
@@ -520,7 +390,7 @@ class RadarOdometry:
                 calib, calib_cov, folded = self._calib, self._calib_cov, self._folded
             else:
                 calib, calib_cov, folded = self._prior_calibration()
-            rig = _Rig(dict(extrinsics), calib.copy(), calib_cov, folded)
+            rig = Rig(dict(extrinsics), calib.copy(), calib_cov, folded)
             self._rigs.append(rig)
         else:
             rig = self._rigs[found]

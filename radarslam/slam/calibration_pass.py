@@ -51,8 +51,8 @@ class CalibrationPassResult:
 def count_rigs(reader, infos) -> int:
     """How many radar rigs the scenes come from, by their radars' nominal extrinsics
     (``reader.scene_extrinsics``, no file read) and the rule the odometry uses to tell rigs
-    apart (:func:`~radarslam.odometry.pipeline.find_rig`)."""
-    from radarslam.odometry.pipeline import find_rig, merge_extrinsics, nominal_extrinsics
+    apart (:func:`~radarslam.odometry.calibration.find_rig`)."""
+    from radarslam.odometry.calibration import find_rig, merge_extrinsics, nominal_extrinsics
 
     rigs: list[dict[str, bytes]] = []
     current = None

@@ -225,7 +225,7 @@ class OdometryFeed:
     ) -> Iterator[FeedMessage]:
         """The messages of every scene in order. ``frames(info)`` gives a scene's frames (None:
         read them here)."""
-        from radarslam.odometry.pipeline import mounting_rotations, with_mounting
+        from radarslam.odometry.calibration import mounting_rotations, with_mounting
         from radarslam.odometry.run import DopplerHealth
         from radarslam.slam.keyframes import SweepBuffer
 
