@@ -130,6 +130,39 @@ class KeyFrameGate:
         return travel >= self.min_travel_m or turn >= self.min_turn_deg
 
 
+@dataclass(frozen=True)
+class _FrameTwist:
+    """A frame's twist for the prediction: the Doppler fit's, or the last one held."""
+
+    twist: np.ndarray  # (vx, vy, yaw_rate)
+    cov: np.ndarray  # (3, 3)
+    stopped: bool  # zero-velocity update: the static rule fired and the twist is 0
+    gap_s: float  # since the previous frame (0 at a segment's first)
+
+
+@dataclass(frozen=True)
+class _Prediction:
+    """The filter's prediction at a frame, before the registration."""
+
+    pose: np.ndarray  # 4x4 world_from_ego
+    cov: np.ndarray  # (3, 3) body tangent
+    delta: np.ndarray  # 4x4 motion since the previous frame (identity at a segment's first)
+    delta_cov: np.ndarray  # (3, 3) of delta
+    calib_jacobian: np.ndarray | None  # pose error per calibration error (None at the first)
+
+
+@dataclass(frozen=True)
+class _Registered:
+    """A frame's pose after its registration, fused or not."""
+
+    pose: np.ndarray
+    cov: np.ndarray
+    result: RegistrationResult | None  # None when the registration did not run
+    accepted: bool
+    icp_cov: np.ndarray | None  # the accepted registration's covariance
+    status: str  # as OdometryResult.status
+
+
 @dataclass
 class _Interval:
     """Dead-reckoning covariance accumulated since an anchor frame, and the anchor's ICP cov."""
@@ -509,177 +542,38 @@ class RadarOdometry:
     # --- main step ----------------------------------------------------------------------------
 
     def process(self, frame: RadarFrame) -> OdometryResult:
+        """One frame: the Doppler fit, its static points, the prediction, the registration
+        fused into it, the relative motion and the key-frame bookkeeping (module docstring)."""
         t0 = time.perf_counter()
-        cfg = self.config
         # Before anything uses the frame: a NaN pose given to kiss-icp aborts the process.
         ground_truth = self.check_frame(frame)
-        if self._rig_pending:
-            self._select_rig(frame)
-        elif self._rig is not None:
-            self._rig.learn(frame)
-        if self._rig is not None and frame.scene_name:
-            scenes = self._rig.scenes
-            if (not scenes or scenes[-1] != frame.scene_name) and frame.scene_name not in scenes:
-                scenes.append(frame.scene_name)
+        self._track_rig(frame)
         frame = self.calibrated_frame(frame)
         fit = self.doppler.fit_frame(frame, self._twist_bounds(frame.timestamp_us))
         t1 = time.perf_counter()
-
-        # Twist of this frame: the fit, or the last one held (its uncertainty growing).
-        if self._t_us is not None and frame.timestamp_us <= self._t_us:
-            raise DataError(
-                f"frame at {frame.timestamp_us} us (scene {frame.scene_name or '?'}) is not after "
-                f"the previous one ({self._t_us} us): frames must be in time order"
-            )
-        gap_s = 0.0 if self._t_us is None else (frame.timestamp_us - self._t_us) * 1e-6
-        stopped = False
-        if fit.valid:
-            twist = fit.twist
-            twist_cov = _sym(fit.covariance) * cfg.fusion.doppler_cov_scale
-            # The zero-velocity test asks whether this fit's twist is told from 0; the floor
-            # below models errors shared across frames, and would call a creeping car stopped.
-            if fit.ego_static and _chi2(twist, twist_cov) < _ZERO_VELOCITY_CHI2:
-                # Zero-velocity update: the static rule fired and the refitted twist cannot be
-                # told from 0, so integrating its noise would only add drift.
-                twist = np.zeros(3)
-                stopped = True
-            twist_cov = twist_cov + self._twist_floor
-        else:
-            twist = self._twist.copy()
-            twist_cov = self._twist_cov + self._growth * max(gap_s, 1e-3)
-        if not np.all(np.isfinite(twist)) or not np.all(np.isfinite(twist_cov)):
-            twist, twist_cov = self._twist.copy(), self._twist_cov + self._growth
-        points = self.ego_points(frame, fit, twist)
+        motion = self._frame_twist(frame, fit)
+        points = self.ego_points(frame, fit, motion.twist)
         t2 = time.perf_counter()
-
         first = self._pose is None
-        if first:
-            self._registration = self._new_registration()
-            pose = planar(ground_truth) if cfg.initial_pose == "ground_truth" else np.eye(4)
-            pose_cov = np.zeros((3, 3))
-            delta, delta_cov = np.eye(4), np.zeros((3, 3))
-        else:
-            xi, xi_calib = self._calibrated(
-                0.5 * (self._twist + twist) * gap_s, gap_s, fit.mounting_jacobian
-            )
-            delta = exp_se2(xi)
-            jr = exp_jacobian_twist(xi)
-            # Twist random walk (q per second) integrated over the interval: q dt^3.
-            xi_cov = 0.25 * (self._twist_cov + twist_cov) * gap_s**2
-            if not fit.valid and self._last_fit is not None:
-                # A held twist errs by one error for the whole hold, not by a fresh one each
-                # frame: from its last fit's covariance C0 and the growth G, the pose has drifted
-                # by C0 T^2 + G T^3 / 3 after T s (this interval adds the difference). Counted
-                # frame by frame, a 1 s hold claimed a third of the sigma, and the registration
-                # could not pull back the along-track error that braking through it left.
-                _, c0, since_us = self._last_fit
-                a = (self._t_us - since_us) * 1e-6
-                b = a + gap_s
-                xi_cov = c0 * (b**2 - a**2) + self._growth * ((b**3 - a**3) / 3.0)
-            if not (stopped and self._stopped):
-                # A vehicle stopped at both ends of a 77 ms interval did not accelerate in it.
-                xi_cov = xi_cov + self._q * gap_s**3
-            delta_cov = jr @ xi_cov @ jr.T
-            ad = adjoint_se2(invert(delta))
-            pose = self._pose @ delta
-            jc = jr @ xi_calib  # pose error per calibration error
-            self._calib_cov = self._calib_cov + self._calib_q * gap_s
-            pose_cov = _sym(
-                ad @ self._cov @ ad.T
-                + ad @ self._cross @ jc.T
-                + jc @ self._cross.T @ ad.T
-                + jc @ self._calib_cov @ jc.T
-                + delta_cov
-            )
-            self._cross = ad @ self._cross + jc @ self._calib_cov
-            if not (stopped and self._stopped):
-                # (standing, the pose is held exactly: nothing moves it against the map)
-                self._unregistered_cov = _sym(ad @ self._unregistered_cov @ ad.T + delta_cov)
-
-        reg_result: RegistrationResult | None = None
-        status = "first" if first else "doppler"
-        accepted = False
-        icp_cov = None
-        reg = self._registration
-        if not first and stopped and self._stopped:
-            # Stopped at both ends (zero-velocity update): the pose is held. Registering would
-            # only feed the registration's jitter back into the map, letting both wander.
-            status = "stopped"
-        elif reg is not None and len(points):
-            source, frame_down = reg.voxelize(points)
-            predicted = pose
-            if not first and not reg.empty and len(source) >= cfg.registration.min_source_points:
-                reg_result = self._align(reg, source, self._registration_seed(predicted, gap_s))
-                icp_cov = _sym(reg_result.covariance) * cfg.fusion.icp_cov_scale
-                frac = cfg.fusion.icp_along_track_sigma_fraction
-                if frac is not None and fit.valid:
-                    # kept for the key-frame covariances too: along track, ICP adds nothing
-                    icp_cov = icp_cov + along_track_covariance(delta, frac)
-                pose, pose_cov, accepted, status = self._fuse(
-                    predicted, pose_cov, reg_result, icp_cov
-                )
-            elif not first:
-                status = "skipped"
-            reg.update(frame_down, pose)
-        elif reg is not None and not first:
-            status = "skipped"
+        pred = self._first_pose(ground_truth) if first else self._predict(fit, motion)
+        reg = self._register(points, pred, motion, fit, first)
         t3 = time.perf_counter()
-
-        if not accepted:
-            icp_cov = None
-        else:
-            self._unregistered_cov = np.zeros((3, 3))
-        if first:
-            rel_cov = np.zeros((3, 3))
-        elif accepted and self._last_icp_cov is not None:
-            rel_cov = _fuse_cov(delta_cov, self._last_icp_cov + icp_cov)
-        else:
-            rel_cov = delta_cov
-        relative = np.eye(4) if first else invert(self._pose) @ pose
-        if not first:
-            turn_rate = abs(0.5 * (self._twist[2] + twist[2]))
-            turn_cov = self._turn_q * (turn_rate**2 * gap_s)
-            rel_cov = rel_cov + turn_cov
-
-        # Key-frame interval bookkeeping.
-        kf_motion = kf_cov = None
-        if not first:
-            self._kf.propagate(relative, delta_cov, jc, turn_cov)
-        is_key_frame = bool(frame.is_key_frame)
-        if is_key_frame and self._kf_started and self.key_frame_gate is not None:
-            is_key_frame = self.key_frame_gate.keeps(
-                invert(self._kf.anchor_pose) @ pose,
-                (frame.timestamp_us - self._kf.anchor_us) * 1e-6,
-            )
-        if is_key_frame:
-            if self._kf_started:
-                kf_motion, kf_cov = self._kf.relative(
-                    pose, icp_cov if accepted else None, self._calib_cov
-                )
-            self._kf.reset(pose, icp_cov if accepted or first else None, int(frame.timestamp_us))
-            self._kf_started = True
-
-        self._pose, self._cov = pose, pose_cov
-        if first:
-            self._cross = np.zeros((3, len(self._calib)))
-        self._t_us = frame.timestamp_us
-        self._fused_yaw_rate = None if first else float(log_se2(relative)[2]) / gap_s
-        self._twist, self._twist_cov = twist, twist_cov
-        if fit.valid:
-            self._last_fit = (fit.twist, twist_cov, int(frame.timestamp_us))
-        self._stopped = stopped
-        self._last_icp_cov = icp_cov
+        relative, rel_cov, turn_cov = self._relative_motion(pred, reg, motion, first)
+        is_key_frame, kf_motion, kf_cov = self._key_frame(
+            frame, pred, reg, relative, turn_cov, first
+        )
+        self._advance(frame, fit, motion, reg, relative, first)
         t4 = time.perf_counter()
         return OdometryResult(
             timestamp_us=int(frame.timestamp_us),
-            world_from_ego=pose.copy(),
-            pose_covariance=pose_cov.copy(),
+            world_from_ego=reg.pose.copy(),
+            pose_covariance=reg.cov.copy(),
             relative_motion=relative,
             relative_covariance=rel_cov,
             doppler=fit,
-            registration=reg_result,
-            icp_accepted=accepted,
-            status=status,
+            registration=reg.result,
+            icp_accepted=reg.accepted,
+            status=reg.status,
             num_points=len(points),
             timing=FrameTiming(
                 doppler_ms=(t1 - t0) * 1e3,
@@ -694,6 +588,211 @@ class RadarOdometry:
             key_frame_motion=kf_motion,
             key_frame_covariance=kf_cov,
         )
+
+    def _track_rig(self, frame: RadarFrame) -> None:
+        """The frame's radar rig (chosen at a segment's first frame with sweeps) and its scenes."""
+        if self._rig_pending:
+            self._select_rig(frame)
+        elif self._rig is not None:
+            self._rig.learn(frame)
+        if self._rig is not None and frame.scene_name:
+            scenes = self._rig.scenes
+            if (not scenes or scenes[-1] != frame.scene_name) and frame.scene_name not in scenes:
+                scenes.append(frame.scene_name)
+
+    def _frame_twist(self, frame: RadarFrame, fit: EgoMotionFit) -> _FrameTwist:
+        """Twist of this frame: the fit, or the last one held (its uncertainty growing)."""
+        if self._t_us is not None and frame.timestamp_us <= self._t_us:
+            raise DataError(
+                f"frame at {frame.timestamp_us} us (scene {frame.scene_name or '?'}) is not after "
+                f"the previous one ({self._t_us} us): frames must be in time order"
+            )
+        gap_s = 0.0 if self._t_us is None else (frame.timestamp_us - self._t_us) * 1e-6
+        stopped = False
+        if fit.valid:
+            twist = fit.twist
+            twist_cov = _sym(fit.covariance) * self.config.fusion.doppler_cov_scale
+            # The zero-velocity test asks whether this fit's twist is told from 0; the floor
+            # below models errors shared across frames, and would call a creeping car stopped.
+            if fit.ego_static and _chi2(twist, twist_cov) < _ZERO_VELOCITY_CHI2:
+                # Zero-velocity update: the static rule fired and the refitted twist cannot be
+                # told from 0, so integrating its noise would only add drift.
+                twist = np.zeros(3)
+                stopped = True
+            twist_cov = twist_cov + self._twist_floor
+        else:
+            twist = self._twist.copy()
+            twist_cov = self._twist_cov + self._growth * max(gap_s, 1e-3)
+        if not np.all(np.isfinite(twist)) or not np.all(np.isfinite(twist_cov)):
+            twist, twist_cov = self._twist.copy(), self._twist_cov + self._growth
+        return _FrameTwist(twist, twist_cov, stopped, gap_s)
+
+    def _first_pose(self, ground_truth: np.ndarray) -> _Prediction:
+        """A segment's first frame: a new map, the initial pose, known exactly."""
+        self._registration = self._new_registration()
+        cfg = self.config
+        pose = planar(ground_truth) if cfg.initial_pose == "ground_truth" else np.eye(4)
+        return _Prediction(pose, np.zeros((3, 3)), np.eye(4), np.zeros((3, 3)), None)
+
+    def _predict(self, fit: EgoMotionFit, motion: _FrameTwist) -> _Prediction:
+        """The filter's prediction: the two frames' twists (trapezoid) integrated over the gap,
+        corrected by the calibration states, and the covariances carried along."""
+        gap_s = motion.gap_s
+        xi, xi_calib = self._calibrated(
+            0.5 * (self._twist + motion.twist) * gap_s, gap_s, fit.mounting_jacobian
+        )
+        delta = exp_se2(xi)
+        jr = exp_jacobian_twist(xi)
+        # Twist random walk (q per second) integrated over the interval: q dt^3.
+        xi_cov = 0.25 * (self._twist_cov + motion.cov) * gap_s**2
+        if not fit.valid and self._last_fit is not None:
+            # A held twist errs by one error for the whole hold, not by a fresh one each
+            # frame: from its last fit's covariance C0 and the growth G, the pose has drifted
+            # by C0 T^2 + G T^3 / 3 after T s (this interval adds the difference). Counted
+            # frame by frame, a 1 s hold claimed a third of the sigma, and the registration
+            # could not pull back the along-track error that braking through it left.
+            assert self._t_us is not None
+            _, c0, since_us = self._last_fit
+            a = (self._t_us - since_us) * 1e-6
+            b = a + gap_s
+            xi_cov = c0 * (b**2 - a**2) + self._growth * ((b**3 - a**3) / 3.0)
+        both_stopped = motion.stopped and self._stopped
+        if not both_stopped:
+            # A vehicle stopped at both ends of a 77 ms interval did not accelerate in it.
+            xi_cov = xi_cov + self._q * gap_s**3
+        delta_cov = jr @ xi_cov @ jr.T
+        ad = adjoint_se2(invert(delta))
+        assert self._pose is not None
+        pose = self._pose @ delta
+        jc = jr @ xi_calib  # pose error per calibration error
+        self._calib_cov = self._calib_cov + self._calib_q * gap_s
+        pose_cov = _sym(
+            ad @ self._cov @ ad.T
+            + ad @ self._cross @ jc.T
+            + jc @ self._cross.T @ ad.T
+            + jc @ self._calib_cov @ jc.T
+            + delta_cov
+        )
+        self._cross = ad @ self._cross + jc @ self._calib_cov
+        if not both_stopped:
+            # (standing, the pose is held exactly: nothing moves it against the map)
+            self._unregistered_cov = _sym(ad @ self._unregistered_cov @ ad.T + delta_cov)
+        return _Prediction(pose, pose_cov, delta, delta_cov, jc)
+
+    def _register(
+        self,
+        points: np.ndarray,
+        pred: _Prediction,
+        motion: _FrameTwist,
+        fit: EgoMotionFit,
+        first: bool,
+    ) -> _Registered:
+        """The points registered against the local map from the prediction and fused into it
+        (unless the vehicle stands or too few points are left), then inserted at the result."""
+        cfg = self.config
+        pose, pose_cov = pred.pose, pred.cov
+        reg_result: RegistrationResult | None = None
+        status = "first" if first else "doppler"
+        accepted = False
+        icp_cov = None
+        reg = self._registration
+        if not first and motion.stopped and self._stopped:
+            # Stopped at both ends (zero-velocity update): the pose is held. Registering would
+            # only feed the registration's jitter back into the map, letting both wander.
+            status = "stopped"
+        elif reg is not None and len(points):
+            source, frame_down = reg.voxelize(points)
+            predicted = pose
+            if not first and not reg.empty and len(source) >= cfg.registration.min_source_points:
+                seed = self._registration_seed(predicted, motion.gap_s)
+                reg_result = self._align(reg, source, seed)
+                icp_cov = _sym(reg_result.covariance) * cfg.fusion.icp_cov_scale
+                frac = cfg.fusion.icp_along_track_sigma_fraction
+                if frac is not None and fit.valid:
+                    # kept for the key-frame covariances too: along track, ICP adds nothing
+                    icp_cov = icp_cov + along_track_covariance(pred.delta, frac)
+                pose, pose_cov, accepted, status = self._fuse(
+                    predicted, pose_cov, reg_result, icp_cov
+                )
+            elif not first:
+                status = "skipped"
+            reg.update(frame_down, pose)
+        elif reg is not None and not first:
+            status = "skipped"
+        if not accepted:
+            icp_cov = None
+        else:
+            self._unregistered_cov = np.zeros((3, 3))
+        return _Registered(pose, pose_cov, reg_result, accepted, icp_cov, status)
+
+    def _relative_motion(
+        self, pred: _Prediction, reg: _Registered, motion: _FrameTwist, first: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Motion since the previous frame, its covariance (dead reckoning fused with the two
+        endpoints' registrations, plus the turn term) and the turn term alone."""
+        if first:
+            return np.eye(4), np.zeros((3, 3)), None
+        assert self._pose is not None
+        if reg.accepted and self._last_icp_cov is not None and reg.icp_cov is not None:
+            rel_cov = _fuse_cov(pred.delta_cov, self._last_icp_cov + reg.icp_cov)
+        else:
+            rel_cov = pred.delta_cov
+        relative = invert(self._pose) @ reg.pose
+        turn_rate = abs(0.5 * (self._twist[2] + motion.twist[2]))
+        turn_cov = self._turn_q * (turn_rate**2 * motion.gap_s)
+        return relative, rel_cov + turn_cov, turn_cov
+
+    def _key_frame(
+        self,
+        frame: RadarFrame,
+        pred: _Prediction,
+        reg: _Registered,
+        relative: np.ndarray,
+        turn_cov: np.ndarray | None,
+        first: bool,
+    ) -> tuple[bool, np.ndarray | None, np.ndarray | None]:
+        """Whether this frame is a key frame, and then its motion and covariance since the
+        previous one (None at a segment's first)."""
+        kf_motion = kf_cov = None
+        if not first:
+            assert pred.calib_jacobian is not None and turn_cov is not None
+            self._kf.propagate(relative, pred.delta_cov, pred.calib_jacobian, turn_cov)
+        is_key_frame = bool(frame.is_key_frame)
+        if is_key_frame and self._kf_started and self.key_frame_gate is not None:
+            is_key_frame = self.key_frame_gate.keeps(
+                invert(self._kf.anchor_pose) @ reg.pose,
+                (frame.timestamp_us - self._kf.anchor_us) * 1e-6,
+            )
+        if is_key_frame:
+            icp_cov = reg.icp_cov if reg.accepted else None
+            if self._kf_started:
+                kf_motion, kf_cov = self._kf.relative(reg.pose, icp_cov, self._calib_cov)
+            self._kf.reset(
+                reg.pose, icp_cov if reg.accepted or first else None, int(frame.timestamp_us)
+            )
+            self._kf_started = True
+        return is_key_frame, kf_motion, kf_cov
+
+    def _advance(
+        self,
+        frame: RadarFrame,
+        fit: EgoMotionFit,
+        motion: _FrameTwist,
+        reg: _Registered,
+        relative: np.ndarray,
+        first: bool,
+    ) -> None:
+        """The filter's state moves on to this frame."""
+        self._pose, self._cov = reg.pose, reg.cov
+        if first:
+            self._cross = np.zeros((3, len(self._calib)))
+        self._t_us = frame.timestamp_us
+        self._fused_yaw_rate = None if first else float(log_se2(relative)[2]) / motion.gap_s
+        self._twist, self._twist_cov = motion.twist, motion.cov
+        if fit.valid:
+            self._last_fit = (fit.twist, motion.cov, int(frame.timestamp_us))
+        self._stopped = motion.stopped
+        self._last_icp_cov = reg.icp_cov
 
     def _align(
         self, reg: ScanToMapRegistration, source: np.ndarray, seed: np.ndarray
