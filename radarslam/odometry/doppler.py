@@ -96,6 +96,11 @@ class EgoMotionFit:
     channels: tuple[str, ...] = field(default=())
     #: (3, 5) d twist / d mounting yaw of each radar (RADAR_CHANNELS order); zeros when unknown.
     mounting_jacobian: np.ndarray = field(default_factory=lambda: np.zeros((3, 5)))
+    #: What the inliers' residuals say about each radar's mounting yaw (rad, RADAR_CHANNELS
+    #: order) with the twist eliminated, in information form: (5, 5) information and (5,)
+    #: information vector (the estimate is information^-1 vector); zeros when unknown.
+    mounting_information: np.ndarray = field(default_factory=lambda: np.zeros((5, 5)))
+    mounting_information_vector: np.ndarray = field(default_factory=lambda: np.zeros(5))
 
     @property
     def twist(self) -> np.ndarray:
@@ -345,13 +350,18 @@ class DopplerEstimator:
         )
 
     def fit_frame(
-        self, frame: RadarFrame | Sequence[RadarSweep], bounds: TwistBounds | None = None
+        self,
+        frame: RadarFrame | Sequence[RadarSweep],
+        bounds: TwistBounds | None = None,
+        mounting_residuals: bool = False,
     ) -> EgoMotionFit:
         """All radars of ``frame`` fitted jointly. With ``bounds``, only twists inside them are
         hypotheses: a frame whose radars all see one moving object (a car alongside) can fit it
         better than the static world when few radars report (two side-looking units observe
         each its own velocity, leaving the yaw rate free), and the fit is then a twist no car
-        can reach within a frame. A frame with no plausible fit is invalid."""
+        can reach within a frame. A frame with no plausible fit is invalid. With
+        ``mounting_residuals`` the fit also reports what its residuals say about each radar's
+        mounting yaw (``mounting_information``)."""
         sweeps: Sequence[RadarSweep]
         if isinstance(frame, RadarFrame):
             sweeps = list(frame.sweeps.values())
@@ -429,6 +439,19 @@ class DopplerEstimator:
             levers=np.array(lever),
             lateral=lateral,
         )
+        n_ch = len(RADAR_CHANNELS)
+        info, vector = np.zeros((n_ch, n_ch)), np.zeros(n_ch)
+        if mounting_residuals:
+            info, vector = self._mounting_residuals(
+                a,
+                b,
+                x,
+                inl,
+                radar_of,
+                [sweeps[k].channel for k, _ in owner],
+                np.array(lever),
+                lateral,
+            )
         if c.speed_scale_error:
             # Every measured v_r is (1 + e) times the model's, and the model is linear in the
             # twist: the fit (and all that derives from it) is (1 + e) times the true twist.
@@ -447,6 +470,8 @@ class DopplerEstimator:
             yaw_rate_observable=yaw_obs,
             channels=channels,
             mounting_jacobian=mount,
+            mounting_information=info,
+            mounting_information_vector=vector,
         )
 
     def _mounting_jacobian(self, a, b, x, inl, radar_of, channels, levers, lateral) -> np.ndarray:
@@ -471,6 +496,40 @@ class DopplerEstimator:
             if sel.any():
                 out[:, RADAR_CHANNELS.index(ch)] = m @ terms[sel].sum(axis=0)
         return out
+
+    def _mounting_residuals(
+        self, a, b, x, inl, radar_of, channels, levers, lateral
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Each radar's mounting yaw as its inliers' residuals see it, the twist eliminated:
+        turning radar i by d adds d (da_p . x) to each of its points' predicted radial velocity
+        (:meth:`_mounting_jacobian`), so the residuals r = b - A x regress on the columns
+        D (one per radar) next to A, and the Schur complement of A's block gives the yaws'
+        information D^T D - D^T A (A^T A)^-1 A^T D and vector D^T r - D^T A (A^T A)^-1 A^T r,
+        in units of the residual variance."""
+        n_ch = len(RADAR_CHANNELS)
+        info, vector = np.zeros((n_ch, n_ch)), np.zeros(n_ch)
+        if not inl.any() or not np.any(x):
+            return info, vector
+        ai, ri = a[inl], radar_of[inl]
+        t = levers[ri]
+        da = np.empty_like(ai)
+        da[:, 0] = -ai[:, 1]
+        da[:, 1] = ai[:, 0]
+        da[:, 2] = ai[:, 0] * t[:, 1] - ai[:, 1] * t[:, 0]
+        d = da @ x
+        r = b[inl] - ai @ x
+        var = max(float(r @ r) / max(len(r) - 3, 1), self.config.noise_floor_mps**2)
+        # per-radar sums over its points (bincount: one pass, no mask per radar)
+        cols = np.array([RADAR_CHANNELS.index(ch) for ch in channels])[ri]
+        dtd = np.bincount(cols, weights=d * d, minlength=n_ch)
+        dtr = np.bincount(cols, weights=d * r, minlength=n_ch)
+        dta = np.stack(
+            [np.bincount(cols, weights=d * ai[:, j], minlength=n_ch) for j in range(3)], axis=1
+        )
+        m = np.linalg.inv(ai.T @ ai + self._prior(lateral) * var)
+        info = (np.diag(dtd) - dta @ m @ dta.T) / var
+        vector = (dtr - dta @ m @ (ai.T @ r)) / var
+        return 0.5 * (info + info.T), vector
 
     def _invalid_frame(
         self, sizes: Mapping[str, int], channels: tuple[str, ...], num_points: int

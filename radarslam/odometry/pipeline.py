@@ -44,6 +44,7 @@ the process when it does).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -283,6 +284,14 @@ class RadarOdometry:
         #: five radars' mounting-yaw errors (rad, RADAR_CHANNELS order); then the speed-scale
         #: error.
         n_yaw = len(RADAR_CHANNELS) if cal.yaw_bias_model == "mounting" else 1
+        #: Whether the Doppler residuals update the mounting yaws (``residual_cov_scale``): they
+        #: complement the registration, so not without one (Doppler dead reckoning stays plain).
+        self._residuals = (
+            cal.yaw_bias_model == "mounting"
+            and cal.residual_cov_scale is not None
+            and self.config.fusion.mode == "kalman"
+            and self.config.registration.enabled
+        )
         self._calib = np.zeros(n_yaw + 1)
         self._calib_cov = np.diag(np.square([cal.yaw_bias_prior] * n_yaw + [cal.speed_scale_prior]))
         self._calib_q = np.diag(np.square([cal.yaw_bias_walk] * n_yaw + [cal.speed_scale_walk]))
@@ -549,13 +558,17 @@ class RadarOdometry:
         ground_truth = self.check_frame(frame)
         self._track_rig(frame)
         frame = self.calibrated_frame(frame)
-        fit = self.doppler.fit_frame(frame, self._twist_bounds(frame.timestamp_us))
+        fit = self.doppler.fit_frame(
+            frame, self._twist_bounds(frame.timestamp_us), mounting_residuals=self._residuals
+        )
         t1 = time.perf_counter()
         motion = self._frame_twist(frame, fit)
         points = self.ego_points(frame, fit, motion.twist)
         t2 = time.perf_counter()
         first = self._pose is None
         pred = self._first_pose(ground_truth) if first else self._predict(fit, motion)
+        if not first:
+            pred = self._residual_calibration(fit, pred)
         reg = self._register(points, pred, motion, fit, first)
         t3 = time.perf_counter()
         relative, rel_cov, turn_cov = self._relative_motion(pred, reg, motion, first)
@@ -678,6 +691,41 @@ class RadarOdometry:
             # (standing, the pose is held exactly: nothing moves it against the map)
             self._unregistered_cov = _sym(ad @ self._unregistered_cov @ ad.T + delta_cov)
         return _Prediction(pose, pose_cov, delta, delta_cov, jc)
+
+    def _residual_calibration(self, fit: EgoMotionFit, pred: _Prediction) -> _Prediction:
+        """The mounting yaws updated by the Doppler residuals' information
+        (``calibration.residual_cov_scale``) in the directions the frame's twist does not show;
+        the pose follows through its correlation with them.
+
+        Information form, since the residuals leave some directions unobserved (a rotation
+        common to all radars): with Lambda the yaws' information and eta its vector, both
+        projected onto the null space of the twist's mounting Jacobian J, the Kalman update is
+        dx = P H^T (Lambda C + I)^-1 (eta - Lambda m), P -= P H^T (Lambda C + I)^-1 Lambda H P,
+        C = H P H^T the yaws' covariance, m their estimate."""
+        scale = self.config.fusion.calibration.residual_cov_scale
+        if not self._residuals or scale is None or not fit.valid:
+            return pred
+        info, vector = fit.mounting_information, fit.mounting_information_vector
+        if not np.any(info):
+            return pred
+        n = len(RADAR_CHANNELS)
+        jac = fit.mounting_jacobian
+        jjt = jac @ jac.T
+        eps = 1e-9 * max(float(np.trace(jjt)), 1e-300)
+        proj = np.eye(n) - jac.T @ np.linalg.solve(jjt + eps * np.eye(3), jac)
+        lam = proj @ info @ proj / scale
+        eta = proj @ vector / scale
+        ph_pose = self._cross[:, :n]  # P H^T, pose rows
+        ph_cal = self._calib_cov[:, :n]  # P H^T, calibration rows
+        a = lam @ ph_cal[:n] + np.eye(n)
+        sol = np.linalg.solve(a, np.column_stack([eta - lam @ self._calib[:n], lam]))
+        step, gain_t = sol[:, 0], sol[:, 1:]  # (Lambda C + I)^-1 (eta - Lambda m), ... Lambda
+        pose = planar(pred.pose @ exp_se2(ph_pose @ step))
+        cov = _sym(pred.cov - ph_pose @ gain_t @ ph_pose.T)
+        self._calib = self._calib + ph_cal @ step
+        self._cross = self._cross - ph_pose @ gain_t @ ph_cal.T
+        self._calib_cov = _sym(self._calib_cov - ph_cal @ gain_t @ ph_cal.T)
+        return dataclasses.replace(pred, pose=pose, cov=cov)
 
     def _register(
         self,

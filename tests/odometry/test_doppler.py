@@ -372,3 +372,34 @@ def test_fallback_lateral_prior_only_where_the_radars_leave_the_yaw_rate_free():
     # Five radars observe the yaw rate themselves: the fallback changes nothing.
     full = make_frame(rng, v, w, moving_fraction=0.3)
     assert np.array_equal(fallback.fit_frame(full).twist, DopplerEstimator().fit_frame(full).twist)
+
+
+def test_the_residuals_see_the_rear_units_turned_opposite_ways():
+    """The two rear corner units look backwards from about the same place: turned opposite ways
+    they leave the joint twist as it is (their columns of the mounting Jacobian nearly agree),
+    but each one's residuals show its own turn (``mounting_information``)."""
+    world = World(np.random.default_rng(0), extent_m=250, n_static=3000)
+    frame = drive(world, np.random.default_rng(1), num_frames=3, speed_mps=8.0,
+                  yaw_rate_radps=0.0, sigma_vr_mps=0.1)[-1]  # fmt: skip
+    est = DopplerEstimator(DopplerConfig(static_velocity="refit", min_points=4))
+    bl, br = RADAR_CHANNELS.index("RADAR_BACK_LEFT"), RADAR_CHANNELS.index("RADAR_BACK_RIGHT")
+
+    def splay_deg(f) -> float:
+        fit = est.fit_frame(f, mounting_residuals=True)
+        yaws = np.linalg.pinv(fit.mounting_information) @ fit.mounting_information_vector
+        return float(np.degrees(yaws[bl] - yaws[br]))
+
+    # the written calibration is the true one turned back by the error
+    err = {"RADAR_BACK_LEFT": np.radians(0.5), "RADAR_BACK_RIGHT": np.radians(-0.5)}
+    sweeps = {
+        ch: dataclasses.replace(
+            sw, ego_from_sensor=sw.ego_from_sensor @ exp_se2([0, 0, -err.get(ch, 0.0)])
+        )
+        for ch, sw in frame.sweeps.items()
+    }
+    turned = dataclasses.replace(frame, sweeps=sweeps)
+    assert splay_deg(turned) - splay_deg(frame) == pytest.approx(1.0, abs=0.15)
+    assert not est.fit_frame(turned).mounting_information.any()  # only when asked
+    jac = est.fit_frame(turned).mounting_jacobian
+    twist_change = jac[:, bl] - jac[:, br]  # per radian of the opposite turn
+    assert np.linalg.norm(twist_change) < 0.1 * np.linalg.norm(jac[:, bl])
