@@ -168,6 +168,16 @@ def _as_rng(rng) -> np.random.Generator:
     return np.random.default_rng(0 if rng is None else rng)
 
 
+def _turned_rows(rows: np.ndarray, levers: np.ndarray) -> np.ndarray:
+    """Derivative of the fit's rows (line of sight u, u . (w x t) / w) with respect to the
+    radar's mounting yaw: u turns to u + d (-u_y, u_x); ``levers`` is (-t_y, t_x) per row."""
+    da = np.empty_like(rows)
+    da[:, 0] = -rows[:, 1]
+    da[:, 1] = rows[:, 0]
+    da[:, 2] = rows[:, 0] * levers[:, 1] - rows[:, 1] * levers[:, 0]
+    return da
+
+
 def _threshold(
     speed: np.ndarray, inlier_threshold_mps: float, relative_threshold: float | None
 ) -> np.ndarray:
@@ -418,8 +428,9 @@ class DopplerEstimator:
         if lateral is None and fallback is not None and not self._observability(a, None)[1]:
             if self._observability(a, fallback, max_yaw_sigma=_FALLBACK_YAW_SIGMA_RADPS)[1]:
                 lateral = fallback
+        levers = np.array(lever)
         inl, x, cov, ego_static, yaw_obs = self._solve_joint(
-            a, b, np.array(lever), radar_of, bounds, lateral
+            a, b, levers, radar_of, bounds, lateral
         )
         if x is None:
             return self._invalid_frame(sizes, channels, len(a))
@@ -429,29 +440,12 @@ class DopplerEstimator:
             masks[sweeps[k].channel][sel] = inl[start : start + cnt]
             start += cnt
         res = a[inl] @ x - b[inl]
-        mount = self._mounting_jacobian(
-            a,
-            b,
-            x,
-            inl,
-            radar_of,
-            [sweeps[k].channel for k, _ in owner],
-            levers=np.array(lever),
-            lateral=lateral,
-        )
+        fitted = [sweeps[k].channel for k, _ in owner]
+        mount = self._mounting_jacobian(a, b, x, inl, radar_of, fitted, levers, lateral)
         n_ch = len(RADAR_CHANNELS)
         info, vector = np.zeros((n_ch, n_ch)), np.zeros(n_ch)
         if mounting_residuals:
-            info, vector = self._mounting_residuals(
-                a,
-                b,
-                x,
-                inl,
-                radar_of,
-                [sweeps[k].channel for k, _ in owner],
-                np.array(lever),
-                lateral,
-            )
+            info, vector = self._mounting_residuals(a, b, x, inl, radar_of, fitted, levers, lateral)
         if c.speed_scale_error:
             # Every measured v_r is (1 + e) times the model's, and the model is linear in the
             # twist: the fit (and all that derives from it) is (1 + e) times the true twist.
@@ -483,11 +477,7 @@ class DopplerEstimator:
         if not inl.any() or not np.any(x):
             return out
         ai, bi, ri = a[inl], b[inl], radar_of[inl]
-        t = levers[ri]  # (-t_y, t_x) per point
-        da = np.empty_like(ai)
-        da[:, 0] = -ai[:, 1]
-        da[:, 1] = ai[:, 0]
-        da[:, 2] = ai[:, 0] * t[:, 1] - ai[:, 1] * t[:, 0]
+        da = _turned_rows(ai, levers[ri])
         resid = bi - ai @ x
         terms = da * resid[:, None] - ai * (da @ x)[:, None]
         m = np.linalg.inv(ai.T @ ai + self._prior(lateral) * self.config.noise_floor_mps**2)
@@ -511,12 +501,7 @@ class DopplerEstimator:
         if not inl.any() or not np.any(x):
             return info, vector
         ai, ri = a[inl], radar_of[inl]
-        t = levers[ri]
-        da = np.empty_like(ai)
-        da[:, 0] = -ai[:, 1]
-        da[:, 1] = ai[:, 0]
-        da[:, 2] = ai[:, 0] * t[:, 1] - ai[:, 1] * t[:, 0]
-        d = da @ x
+        d = _turned_rows(ai, levers[ri]) @ x
         r = b[inl] - ai @ x
         var = max(float(r @ r) / max(len(r) - 3, 1), self.config.noise_floor_mps**2)
         # per-radar sums over its points (bincount: one pass, no mask per radar)
