@@ -106,8 +106,10 @@ def degraded_root(src: Path, dst: Path, empty: set[str]) -> None:
                 os.symlink(Path(dirpath, f).resolve(), dst / rel / f)
 
 
-def run_condition(root: Path, version: str, scenes: list[str], jobs: int) -> dict:
-    jobs_list = [(str(root), version, [s], []) for s in scenes]
+def run_condition(
+    root: Path, version: str, scenes: list[str], jobs: int, overrides: list[str] | None = None
+) -> dict:
+    jobs_list = [(str(root), version, [s], list(overrides or [])) for s in scenes]
     with mp.get_context("fork").Pool(max(1, min(jobs, len(jobs_list)))) as pool:
         results = pool.map(odobench.run_segment, jobs_list, chunksize=1)
     per_scene = {
@@ -132,6 +134,13 @@ def main() -> int:
         "--only", default=None, help="run only the conditions whose name contains this (and clean)"
     )
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="odometry config override, as in bench/odometry.py (repeatable)",
+    )
     args = ap.parse_args()
 
     from radarslam.io.atomic import write_text_atomic
@@ -145,6 +154,7 @@ def main() -> int:
         )
         return 2
     # A bad dataroot or scene name is a RadarSlamError: one line from guarded().
+    odobench.odometry_config(args.set)  # a bad --set fails here, in one line
     reader = NuScenesRadar(args.dataroot, args.version)
     scenes = args.scenes.split(",") if args.scenes else [s.name for s in reader.scenes()]
     for s in scenes:
@@ -162,7 +172,7 @@ def main() -> int:
             root = args.work / f"condition{k}"
             degraded_root(args.dataroot.resolve(), root, empty)
         print(f"{name}: {len(empty)} sweeps emptied", flush=True)
-        rows[name] = run_condition(root, args.version, scenes, args.jobs)
+        rows[name] = run_condition(root, args.version, scenes, args.jobs, args.set)
         rows[name]["sweeps_emptied"] = len(empty)
     clean = rows["clean"]["scenes"]
     print(f"\npooled ATE (SE(2)-aligned), m, over {len(scenes)} scenes")

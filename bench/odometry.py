@@ -139,7 +139,7 @@ def run_segment(job: tuple[str, str, list[str], list[str]]) -> dict:
         t0 = time.process_time()
         if method == "ours" and cal.passes > 1 and cal.yaw_bias_model == "mounting":
             first = make_odometry(method, single_pass(cfg, dict(cfg.mounting_yaw_deg)))
-            for f in frames:
+            for f in frames[:: cal.pass_frame_stride]:
                 first.process(f)
             run_cfg = second_pass(cfg, first.calibration.as_dict())
         odo = make_odometry(method, run_cfg)

@@ -18,6 +18,7 @@ The point checks and :func:`stack_in_reference` are in :mod:`.sweeps`, the frame
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -440,6 +441,7 @@ class NuScenesRadar:
         ref_channel: str = "RADAR_FRONT",
         sync_tolerance_us: int | None = None,
         filters: RadarPointFilter | None = None,
+        stride: int = 1,
     ) -> Iterator[RadarFrame]:
         """Sets of the five radars' sweeps nearest in time (~13 Hz), in time order.
 
@@ -464,6 +466,10 @@ class NuScenesRadar:
         Empty sweeps are yielded (and counted in ``skip_counts``), but when every sweep of the
         scene's frames was empty, :class:`DataError` is raised after the last frame.
 
+        ``stride`` k > 1 yields every k-th of those frames (the first, the (k+1)-th, ...) and
+        reads only their sweeps: a calibration pass that needs fewer frames does not pay for
+        reading the others.
+
         Arguments are checked at the call (:class:`DataError` / :class:`ConfigError`), not at
         the first frame.
         """
@@ -471,7 +477,11 @@ class NuScenesRadar:
         _channel_index(ref_channel)
         _check_sync_tolerance(sync_tolerance_us)
         _check_filters(filters)
-        return self._iter_frames(info, key_frames_only, ref_channel, sync_tolerance_us, filters)
+        if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
+            raise ConfigError(f"iter_frames: stride must be an integer >= 1, got {stride!r}")
+        return self._iter_frames(
+            info, key_frames_only, ref_channel, sync_tolerance_us, filters, int(stride)
+        )
 
     def _iter_frames(
         self,
@@ -480,12 +490,15 @@ class NuScenesRadar:
         ref_channel: str,
         sync_tolerance_us: int | None,
         filters: RadarPointFilter | None,
+        stride: int = 1,
     ) -> Iterator[RadarFrame]:
         before = dict(self.skip_counts.per_scene.get(info.name, {})) or None
         if key_frames_only:
-            yield from self._iter_key_frames(info, ref_channel, filters)
+            yield from itertools.islice(
+                self._iter_key_frames(info, ref_channel, filters), 0, None, stride
+            )
         else:
-            groups = self._group_rows(info, ref_channel, sync_tolerance_us)
+            groups = self._group_rows(info, ref_channel, sync_tolerance_us)[::stride]
             for group in groups:
                 sweeps = [self._sweep(r, filters, info.name) for _, r in group]
                 anchor = sweeps[0]

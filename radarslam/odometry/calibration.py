@@ -118,6 +118,25 @@ def rig_id(extrinsics: dict[str, bytes]) -> str:
     return h.hexdigest()[:8]
 
 
+def count_rigs(reader, infos) -> int:
+    """How many radar rigs the scenes come from, by their radars' nominal extrinsics
+    (``reader.scene_extrinsics``, no file read) and the rule the odometry uses to tell rigs
+    apart (:func:`~radarslam.odometry.calibration.find_rig`)."""
+    rigs: list[dict[str, bytes]] = []
+    current = None
+    for info in infos:
+        ext = nominal_extrinsics(reader.scene_extrinsics(info))
+        if not ext:
+            continue
+        current = find_rig(rigs, ext, current)
+        if current is None:
+            rigs.append(ext)
+            current = len(rigs) - 1
+        else:
+            merge_extrinsics(rigs[current], ext)
+    return len(rigs)
+
+
 @dataclass
 class Rig:
     """One radar rig (a vehicle's nominal extrinsics) and the calibration estimated for it while

@@ -146,18 +146,16 @@ def run_odometry(
     method: str = "ours",
     progress: bool = True,
     max_frames_per_scene: int | None = None,
+    frame_stride: int = 1,
 ) -> OdometryTrajectory:
     """Run ``method`` (``ours``, ``doppler`` or ``kiss-icp``) over ``scenes`` of a
     :class:`~radarslam.nuscenes.reader.NuScenesRadar` and collect the per-frame estimates.
 
     ``scenes``: names or :class:`SceneInfo` (one name or SceneInfo alone is one scene), each scene
-    at most once (:class:`DataError` otherwise: its frames would repeat timestamps)."""
-    from radarslam.nuscenes.filters import RadarPointFilter
-    from radarslam.odometry.baselines import make_odometry
-
+    at most once (:class:`DataError` otherwise: its frames would repeat timestamps).
+    ``frame_stride`` k: every k-th frame only (a strided calibration pass), the gap that starts
+    a new segment scaled by k; ``max_frames_per_scene`` counts the frames read."""
     config = config or OdometryConfig()
-    pc = config.points
-    filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
     if isinstance(scenes, (str, SceneInfo)):
         scenes = [scenes]  # one scene, not a sequence of characters
     infos = [reader.scene(s) for s in scenes]  # unknown names fail before any work
@@ -179,24 +177,54 @@ def run_odometry(
                 "(its frames would repeat timestamps)"
             )
         seen.add(info.name)
+    if (
+        isinstance(frame_stride, bool)
+        or not isinstance(frame_stride, (int, np.integer))
+        or frame_stride < 1
+    ):
+        raise ConfigError(f"frame_stride must be an integer >= 1, got {frame_stride!r}")
+    kw = {"progress": progress, "max_frames": max_frames_per_scene, "stride": int(frame_stride)}
     cal = config.fusion.calibration
     if method == "ours" and cal.passes > 1 and cal.yaw_bias_model == "mounting":
-        return _self_calibrated(reader, infos, config, progress, max_frames_per_scene)
+        return _self_calibrated(reader, infos, config, **kw)
+    return _run_once(reader, infos, config, method, **kw)
+
+
+def _run_once(
+    reader,
+    infos: Sequence[SceneInfo],
+    config: OdometryConfig,
+    method: str,
+    *,
+    progress: bool,
+    max_frames: int | None,
+    stride: int,
+    warn: bool = True,
+) -> OdometryTrajectory:
+    """One pass of ``method`` over the scenes (arguments checked by :func:`run_odometry`);
+    ``warn``: log each scene whose Doppler fits look unreliable (a calibration pass does not
+    repeat what the run proper will say)."""
+    from radarslam.nuscenes.filters import RadarPointFilter
+    from radarslam.odometry.baselines import make_odometry
+
+    pc = config.points
+    filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
+    max_frames_per_scene, frame_stride = max_frames, stride
     odo = make_odometry(method, config)
     rows: dict[str, list] = {k: [] for k in _ROW_KEYS}
     kf: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     segment = -1
     last_t: int | None = None
-    bar = _progress(progress, infos, reader, max_frames_per_scene)
+    bar = _progress(progress, infos, reader, max_frames_per_scene, frame_stride)
+    max_gap_us = config.fusion.max_gap_s * 1e6 * frame_stride
     try:
         for info in infos:
             health = DopplerHealth(config.doppler.min_points)
-            for k, frame in enumerate(reader.iter_frames(info, filters=filters)):
+            frames = reader.iter_frames(info, filters=filters, stride=frame_stride)
+            for k, frame in enumerate(frames):
                 if max_frames_per_scene is not None and k >= max_frames_per_scene:
                     break
-                gap_ok = last_t is not None and 0 < frame.timestamp_us - last_t <= (
-                    config.fusion.max_gap_s * 1e6
-                )
+                gap_ok = last_t is not None and 0 < frame.timestamp_us - last_t <= max_gap_us
                 if not gap_ok:
                     odo.reset()
                     segment += 1
@@ -222,7 +250,7 @@ def run_odometry(
                 if bar is not None:
                     bar.update(1)
             why = health.problem()
-            if why is not None:
+            if why is not None and warn:
                 log.warning("scene %s: %s: its odometry is unreliable", info.name, why)
     finally:
         if bar is not None:
@@ -276,38 +304,56 @@ def total_calibration(applied: OdometryConfig, residual: dict) -> dict:
     return out
 
 
-def _self_calibrated(reader, infos, config, progress, max_frames_per_scene):
+def _self_calibrated(reader, infos, config, *, progress, max_frames, stride):
     """Two passes (``fusion.calibration.passes: 2``): the second applies the mounting yaws the
     first estimated (plus any given ones) to every sweep from the start, so neither the map nor
     the early Doppler fits carry the error while the filter converges."""
-    kw = {"progress": progress, "max_frames_per_scene": max_frames_per_scene}
-    first = run_odometry(reader, infos, single_pass(config, dict(config.mounting_yaw_deg)), **kw)
-    if len(first.calibrations) > 1:
+    from radarslam.odometry.calibration import count_rigs
+
+    kw = {"progress": progress, "max_frames": max_frames}
+    given = single_pass(config, dict(config.mounting_yaw_deg))
+    rigs = count_rigs(reader, infos)
+    if rigs > 1:
         # One set of mounting yaws cannot be applied to every sweep of several cars.
         log.warning(
             "the scenes come from %d radar rigs (nominal extrinsics differ); the calibration "
             "pass applies to one rig, so the single pass's per-rig estimates are kept",
-            len(first.calibrations),
+            rigs,
         )
-        return first
+        return _run_once(reader, infos, given, "ours", stride=stride, **kw)
+    pass_stride = stride * config.fusion.calibration.pass_frame_stride
+    first = _run_once(reader, infos, given, "ours", stride=pass_stride, warn=False, **kw)
     applied = second_pass(config, first.calibration)
-    second = run_odometry(reader, infos, applied, **kw)
+    second = _run_once(reader, infos, applied, "ours", stride=stride, **kw)
     return dataclasses.replace(
         second,
         calibration=total_calibration(applied, second.calibration or {}),
-        processing_ms=first.processing_ms + second.processing_ms,  # same frames, both passes
+        processing_ms=second.processing_ms + _spread(first, second),
     )
+
+
+def _spread(first: OdometryTrajectory, second: OdometryTrajectory) -> np.ndarray:
+    """The first pass's CPU per frame of the second (a strided pass ran fewer frames): each
+    scene's total shared out over that scene's frames, so per-scene and pooled costs add up."""
+    out = np.zeros(len(second))
+    for name in dict.fromkeys(second.scene_names):
+        mine = np.array([s == name for s in second.scene_names])
+        theirs = np.array([s == name for s in first.scene_names], dtype=bool)
+        out[mine] = first.processing_ms[theirs].sum() / mine.sum() if theirs.any() else 0.0
+    return out
 
 
 _ROW_KEYS = ("t", "pose", "gt", "cov", "scene", "seg", "kf", "token", "status", "npts", "ms")
 
 
-def _progress(enabled: bool, infos: Sequence[SceneInfo], reader, max_frames: int | None):
+def _progress(
+    enabled: bool, infos: Sequence[SceneInfo], reader, max_frames: int | None, stride: int = 1
+):
     if not enabled:
         return None
     from tqdm import tqdm
 
-    counts = (reader.frame_count(i) for i in infos)
+    counts = (-(-reader.frame_count(i) // stride) for i in infos)
     total = sum(n if max_frames is None else min(n, max_frames) for n in counts)
     return tqdm(total=total or None, unit="frame", desc="odometry", leave=False)
 

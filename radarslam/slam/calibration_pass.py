@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from radarslam.errors import DataError
+from radarslam.odometry.calibration import count_rigs
 from radarslam.slam.feed import scene_drives
 from radarslam.slam.processes import (
     REAP_EVERY_S,
@@ -48,27 +49,6 @@ class CalibrationPassResult:
         return max(self.calibration.get("mounting_yaw_sigma_deg", {}).values(), default=np.nan)
 
 
-def count_rigs(reader, infos) -> int:
-    """How many radar rigs the scenes come from, by their radars' nominal extrinsics
-    (``reader.scene_extrinsics``, no file read) and the rule the odometry uses to tell rigs
-    apart (:func:`~radarslam.odometry.calibration.find_rig`)."""
-    from radarslam.odometry.calibration import find_rig, merge_extrinsics, nominal_extrinsics
-
-    rigs: list[dict[str, bytes]] = []
-    current = None
-    for info in infos:
-        ext = nominal_extrinsics(reader.scene_extrinsics(info))
-        if not ext:
-            continue
-        current = find_rig(rigs, ext, current)
-        if current is None:
-            rigs.append(ext)
-            current = len(rigs) - 1
-        else:
-            merge_extrinsics(rigs[current], ext)
-    return len(rigs)
-
-
 def estimate_calibration(
     reader,
     infos,
@@ -80,10 +60,10 @@ def estimate_calibration(
 ) -> CalibrationPassResult:
     """The odometry (``config``) over the scenes in order, each from a reset as in a SLAM run
     (with ``continue_log_scenes``, a scene that continues the one before it drives on),
-    until every mounting yaw's sigma is below ``max_sigma_deg`` (None: every scene). From the
-    second scene on it also stops once the key frames left could not get there
-    (:data:`PASS_PROJECTION_SLACK`): a run of short scenes then does not pay for a pass it cannot
-    use."""
+    until every mounting yaw's sigma is below ``max_sigma_deg`` (None: every scene), on every
+    ``fusion.calibration.pass_frame_stride``-th frame of each drive. From the second scene on
+    it also stops once the key frames left could not get there (:data:`PASS_PROJECTION_SLACK`):
+    a run of short scenes then does not pay for a pass it cannot use."""
     from radarslam.odometry.pipeline import RadarOdometry
 
     odometry = RadarOdometry(config)
@@ -105,14 +85,19 @@ def estimate_calibration(
         return reader.iter_frames(info, filters=frame_filter)
 
     drives = scene_drives(infos, read, config.fusion.max_gap_s * 1e6, continue_log_scenes)
+    stride = config.fusion.calibration.pass_frame_stride
+    driven = 0
     try:
         for i, drive in enumerate(drives):
             if drive.continues is not None:
                 odometry.fold_calibration()
             else:
                 odometry.reset()
+                driven = 0  # frames of this drive so far: a continued scene keeps the stride
             for frame in drive.frames:
-                odometry.process(frame)
+                if driven % stride == 0:
+                    odometry.process(frame)
+                driven += 1
             if bar is not None:
                 bar.update(1)
             if max_sigma_deg is None:

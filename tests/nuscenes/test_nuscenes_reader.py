@@ -113,6 +113,23 @@ def test_iter_frames_groups_and_covers_a_missing_radar(mini, reader):
     }
 
 
+def test_iter_frames_stride_reads_every_kth_frame(reader):
+    full = list(reader.iter_frames("scene-0001"))
+    every3 = list(reader.iter_frames("scene-0001", stride=3))
+    assert len(every3) == 13  # 39 frames: the 1st, 4th, ... 37th
+    for a, b in zip(full[::3], every3, strict=True):
+        assert a.timestamp_us == b.timestamp_us
+        assert {c: s.token for c, s in a.sweeps.items()} == {
+            c: s.token for c, s in b.sweeps.items()
+        }
+    keys = list(reader.iter_frames("scene-0001", key_frames_only=True))
+    keys2 = list(reader.iter_frames("scene-0001", key_frames_only=True, stride=2))
+    assert [f.sample_token for f in keys2] == [f.sample_token for f in keys[::2]]
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ConfigError, match="stride must be an integer >= 1"):
+            reader.iter_frames("scene-0001", stride=bad)
+
+
 def test_iter_frames_other_reference_and_tolerance(reader):
     back = list(reader.iter_frames("scene-0003", ref_channel="RADAR_BACK_LEFT"))
     assert all(f.timestamp_us == f.sweeps["RADAR_BACK_LEFT"].timestamp_us for f in back)

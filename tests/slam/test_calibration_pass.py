@@ -164,5 +164,15 @@ def test_a_continued_scene_skips_the_frames_already_driven(monkeypatch):
             self.calibration = _Calibration(1.0)
 
     monkeypatch.setattr(odometry_pipeline, "RadarOdometry", Recording)
-    estimate_calibration(Overlapping(), _scenes(3), OdometryConfig(), None, None)
+    every = OdometryConfig.model_validate({"fusion": {"calibration": {"pass_frame_stride": 1}}})
+    estimate_calibration(Overlapping(), _scenes(3), every, None, None)
     assert driven == [0, 1_000_000, 2_000_000, 3_000_000]
+    # pass_frame_stride: every k-th frame of a drive, counted on through the scenes it continues
+    driven.clear()
+    estimate_calibration(Overlapping(), _scenes(3), OdometryConfig(), None, None)
+    assert OdometryConfig().fusion.calibration.pass_frame_stride == 3
+    assert driven == [0, 3_000_000]
+    second = OdometryConfig.model_validate({"fusion": {"calibration": {"pass_frame_stride": 2}}})
+    driven.clear()
+    estimate_calibration(Overlapping(), _scenes(3), second, None, None)
+    assert driven == [0, 2_000_000]
