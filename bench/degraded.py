@@ -3,6 +3,7 @@
     python bench/degraded.py            # the real split, ../shared/data/nuscenes-mini-radar
     python bench/degraded.py --dataroot D --version v1.0-trainval [--scenes a,b]
     python bench/degraded.py ... --json results.json
+    python bench/degraded.py --only silent --set fusion.calibration.pass_frame_stride=1
 
 Real ARS408 sweeps can be empty (2.4 % of the sweeps of real nuScenes scenes other than these five)
 and a radar can fail or be blocked. Each condition is a copy of the dataroot under ``--work``

@@ -27,6 +27,11 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
         ("realism.py", ["--set", "world.x=1", "--work", "{tmp}/work"], "world"),
         ("degraded.py", ["--dataroot", "{tmp}/none", "--work", "{tmp}/work"], "no such folder"),
         ("degraded.py", ["--scenes", "scene-9999", "--work", "{tmp}/work"], "scene-9999"),
+        (
+            "degraded.py",
+            ["--set", "fusion.calibration.pass_frame_stride=0", "--work", "{tmp}/work"],
+            "pass_frame_stride",
+        ),
     ],
 )
 def test_bad_argument_is_one_line_and_status_2(tmp_path, script, args, names):
