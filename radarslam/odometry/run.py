@@ -209,20 +209,19 @@ def _run_once(
 
     pc = config.points
     filters = RadarPointFilter(pc.invalid_states, pc.dynprop_states, pc.ambig_states)
-    max_frames_per_scene, frame_stride = max_frames, stride
     odo = make_odometry(method, config)
     rows: dict[str, list] = {k: [] for k in _ROW_KEYS}
     kf: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     segment = -1
     last_t: int | None = None
-    bar = _progress(progress, infos, reader, max_frames_per_scene, frame_stride)
-    max_gap_us = config.fusion.max_gap_s * 1e6 * frame_stride
+    bar = _progress(progress, infos, reader, max_frames, stride)
+    max_gap_us = config.fusion.max_gap_s * 1e6 * stride
     try:
         for info in infos:
             health = DopplerHealth(config.doppler.min_points)
-            frames = reader.iter_frames(info, filters=filters, stride=frame_stride)
+            frames = reader.iter_frames(info, filters=filters, stride=stride)
             for k, frame in enumerate(frames):
-                if max_frames_per_scene is not None and k >= max_frames_per_scene:
+                if max_frames is not None and k >= max_frames:
                     break
                 gap_ok = last_t is not None and 0 < frame.timestamp_us - last_t <= max_gap_us
                 if not gap_ok:
