@@ -203,7 +203,7 @@ def _run_once(
 ) -> OdometryTrajectory:
     """One pass of ``method`` over the scenes (arguments checked by :func:`run_odometry`);
     ``warn``: log each scene whose Doppler fits look unreliable (a calibration pass does not
-    repeat what the run proper will say)."""
+    repeat what the run proper will say, and its progress bar is named as such)."""
     from radarslam.nuscenes.filters import RadarPointFilter
     from radarslam.odometry.baselines import make_odometry
 
@@ -214,7 +214,8 @@ def _run_once(
     kf: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     segment = -1
     last_t: int | None = None
-    bar = _progress(progress, infos, reader, max_frames, stride)
+    desc = "odometry" if warn else "calibration pass"
+    bar = _progress(progress, infos, reader, max_frames, stride, desc)
     max_gap_us = config.fusion.max_gap_s * 1e6 * stride
     try:
         for info in infos:
@@ -346,7 +347,12 @@ _ROW_KEYS = ("t", "pose", "gt", "cov", "scene", "seg", "kf", "token", "status", 
 
 
 def _progress(
-    enabled: bool, infos: Sequence[SceneInfo], reader, max_frames: int | None, stride: int = 1
+    enabled: bool,
+    infos: Sequence[SceneInfo],
+    reader,
+    max_frames: int | None,
+    stride: int = 1,
+    desc: str = "odometry",
 ):
     if not enabled:
         return None
@@ -354,7 +360,7 @@ def _progress(
 
     counts = (-(-reader.frame_count(i) // stride) for i in infos)
     total = sum(n if max_frames is None else min(n, max_frames) for n in counts)
-    return tqdm(total=total or None, unit="frame", desc="odometry", leave=False)
+    return tqdm(total=total or None, unit="frame", desc=desc, leave=False)
 
 
 # --- outputs -------------------------------------------------------------------------------------
