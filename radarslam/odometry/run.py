@@ -199,11 +199,11 @@ def _run_once(
     progress: bool,
     max_frames: int | None,
     stride: int,
-    warn: bool = True,
+    calibration_pass: bool = False,
 ) -> OdometryTrajectory:
-    """One pass of ``method`` over the scenes (arguments checked by :func:`run_odometry`);
-    ``warn``: log each scene whose Doppler fits look unreliable (a calibration pass does not
-    repeat what the run proper will say, and its progress bar is named as such)."""
+    """One pass of ``method`` over the scenes (arguments checked by :func:`run_odometry`). A
+    ``calibration_pass`` names its progress bar so and does not warn of unreliable Doppler
+    fits: the run proper that follows says it once."""
     from radarslam.nuscenes.filters import RadarPointFilter
     from radarslam.odometry.baselines import make_odometry
 
@@ -214,7 +214,7 @@ def _run_once(
     kf: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     segment = -1
     last_t: int | None = None
-    desc = "odometry" if warn else "calibration pass"
+    desc = "calibration pass" if calibration_pass else "odometry"
     bar = _progress(progress, infos, reader, max_frames, stride, desc)
     max_gap_us = config.fusion.max_gap_s * 1e6 * stride
     try:
@@ -250,7 +250,7 @@ def _run_once(
                 if bar is not None:
                     bar.update(1)
             why = health.problem()
-            if why is not None and warn:
+            if why is not None and not calibration_pass:
                 log.warning("scene %s: %s: its odometry is unreliable", info.name, why)
     finally:
         if bar is not None:
@@ -322,7 +322,7 @@ def _self_calibrated(reader, infos, config, *, progress, max_frames, stride):
         )
         return _run_once(reader, infos, given, "ours", stride=stride, **kw)
     pass_stride = stride * config.fusion.calibration.pass_frame_stride
-    first = _run_once(reader, infos, given, "ours", stride=pass_stride, warn=False, **kw)
+    first = _run_once(reader, infos, given, "ours", stride=pass_stride, calibration_pass=True, **kw)
     applied = second_pass(config, first.calibration)
     second = _run_once(reader, infos, applied, "ours", stride=stride, **kw)
     return dataclasses.replace(
