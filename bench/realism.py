@@ -3,6 +3,7 @@
     python bench/realism.py              # all 5 scenes of ../shared/data/nuscenes-mini-radar
     python bench/realism.py --scenes scene-0061 --json /tmp/realism.json
     python bench/realism.py --preset demo --set radar.clutter_rate=0.5 --regenerate
+    python bench/realism.py --twin-mounting estimated   # each twin gets the real car's mounting
 
 Per real scene:
 
@@ -10,7 +11,9 @@ Per real scene:
    ``gt_<scene>.tum``) is exported to ``WORK/<scene>/gt_<scene>.tum``.
 2. A synthetic twin is simulated along that path (``radarslam.sim.simulate`` with
    ``trajectory_tum``; preset ``--preset``, one log of one scene as long as the real scene, the
-   ``--set`` overrides, a seed derived from ``--seed`` and the scene name) into
+   ``--set`` overrides, a seed derived from ``--seed`` and the scene name; with
+   ``--twin-mounting estimated`` the radars' mounting yaw errors are the ones ours estimated on
+   the real scene instead of the simulator's draw) into
    ``WORK/<scene>/twin_<digest>``. The digest covers the path, the resolved simulator config,
    the seed and the simulator's sources, so a complete twin is reused unless ``--regenerate``.
    The simulator starts a scene 0.5-3 s into the drive and ends it 0.2 s before the path's end,
@@ -94,6 +97,16 @@ def export_gt(work: Path, scene: str, result: dict) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     write_trajectories(folder, scene, result["t"], {"gt": result["gt"]})
     return trajectory_path(folder, "gt", scene)
+
+
+def car_overrides(result: dict) -> list[str]:
+    """The simulator override that gives a twin the mounting yaw errors ours estimated on the real
+    scene (its Doppler calibration pass and run together), so the twin drives the same car."""
+    est = (result.get("calibration") or {}).get("mounting_yaw_error_deg") or {}
+    if not est:
+        return []
+    body = ", ".join(f"{ch}: {float(v)!r}" for ch, v in sorted(est.items()))
+    return [f"radar.mounting_yaw_error_deg={{{body}}}"]
 
 
 def make_twin(
@@ -261,6 +274,13 @@ def main() -> None:
         help="simulator config override for every twin, e.g. radar.clutter_rate=0.5",
     )
     ap.add_argument("--seed", type=int, default=0, help="base of the per-scene twin seeds")
+    ap.add_argument(
+        "--twin-mounting",
+        choices=("drawn", "estimated"),
+        default="drawn",
+        help="the twins' radar mounting yaw errors: drawn from the simulator's mixture (its "
+        "seed), or the ones ours estimates on the real scene (the twin of that car)",
+    )
     ap.add_argument("--regenerate", action="store_true", help="simulate the twins again")
     ap.add_argument("--jobs", type=int, default=1, help="odometry runs in parallel")
     ap.add_argument("--json", type=Path, default=None, help="write every number to this file")
@@ -302,9 +322,11 @@ def main() -> None:
         duration = float((r["t"][-1] - r["t"][0]) * 1e-6)
         gt_tum = export_gt(args.work, scene, r)
         seed = scene_seed(args.seed, scene)
+        car = car_overrides(r) if args.twin_mounting == "estimated" else []
         root, version, overrides = make_twin(
-            args.work, scene, gt_tum, duration, args.preset, args.set, seed, args.regenerate
-        )
+            args.work, scene, gt_tum, duration, args.preset, [*car, *args.set], seed,
+            args.regenerate,
+        )  # fmt: skip
         twins[scene] = (root, version)
         info[scene] = {
             "gt_tum": str(gt_tum),
@@ -402,6 +424,7 @@ def main() -> None:
             "version": args.version,
             "preset": args.preset,
             "seed": args.seed,
+            "twin_mounting": args.twin_mounting,
             "sim_overrides": args.set,
             "scenes": {
                 s: {
