@@ -1,4 +1,4 @@
-"""bench/realism.py: a twin of the real car gets the mounting yaws ours estimated on the real scene."""
+"""bench/realism.py: the twin of the real car gets the mounting yaws ours estimates on its scene."""
 
 import importlib.util
 from pathlib import Path
