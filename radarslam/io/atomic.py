@@ -5,7 +5,9 @@ An interrupted run therefore leaves either the old file or the new one, never ha
 several files that belong together. The final renames run with Ctrl-C and SIGTERM held back
 (:func:`interrupts_deferred`): an interrupt there takes effect once they are done.
 A target that cannot be written (its folder is a file, it is a folder, no permission, disk full)
-raises :class:`WriteError`, a :class:`~radarslam.errors.DataError` naming the target.
+raises :class:`WriteError`, a :class:`~radarslam.errors.DataError` naming the target; so does
+a FIFO, device or socket (a rename would put a plain file in its place). A symbolic link is
+written through: the file it points to is replaced, the link stays.
 
 Temporary names carry the writing process's id, ``.<target name>.<pid>-<random>.tmp`` (a
 folder moved aside: ``....old``): what a process killed hard (``kill -9``) leaves behind is
@@ -22,6 +24,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 import sys
 import tempfile
 from collections.abc import Callable, Iterator
@@ -252,6 +255,27 @@ def _fsync_folder(folder: Path) -> None:
             os.close(fd)
 
 
+def _target(path: Path) -> Path:
+    """The file an atomic write replaces: where a symbolic link points (the link stays a link),
+    never a FIFO, device or socket, which a rename would replace by a plain file."""
+    try:
+        st = os.stat(path)  # follows links
+    except FileNotFoundError:
+        return Path(os.path.realpath(path)) if path.is_symlink() else path  # dangling: its target
+    except OSError:
+        return path  # the write itself reports why (no permission, a file in the way)
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+        kind = (
+            "a FIFO"
+            if stat.S_ISFIFO(st.st_mode)
+            else "a socket"
+            if stat.S_ISSOCK(st.st_mode)
+            else "a device"
+        )
+        raise WriteError(f"{path}: cannot write (it is {kind}, not a regular file)")
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
+
+
 def _make_parent(path: Path) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -262,7 +286,7 @@ def _make_parent(path: Path) -> None:
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "w", encoding: str | None = "utf-8") -> Iterator[IO]:
     """Open a temporary file next to ``path``; on clean exit it replaces ``path`` atomically."""
-    path = Path(path)
+    path = _target(Path(path))
     _make_parent(path)
     binary = "b" in mode
     fd = tmp = None
@@ -324,7 +348,7 @@ def atomic_path(path: str | Path) -> contextlib.AbstractContextManager[Path]:
 
 class _AtomicPath(contextlib.AbstractContextManager):
     def __init__(self, path: Path):
-        self.path = path
+        self.path = path = _target(path)
         # the target's suffix last: savefig and open3d choose the format by it
         name = f"{_temp_prefix(path.name)}{secrets.token_hex(4)}.tmp{path.suffix}"
         self.tmp = path.with_name(name)

@@ -121,6 +121,18 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
     for key in ("model_config", "state_dict", "digest"):
         if key not in payload:
             raise CheckpointError(f"{path}: checkpoint lacks '{key}'")
+    state = payload["state_dict"]
+    if not isinstance(state, dict) or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
+    ):
+        raise CheckpointError(
+            f"{path}: the checkpoint's 'state_dict' is not a mapping of names to tensors"
+        )
+    stored_dtype = payload.get("dtype")
+    if stored_dtype not in (None, "float32", "float16"):
+        raise CheckpointError(
+            f"{path}: stored weight dtype {stored_dtype!r} is not float32 or float16"
+        )
     if _digest(payload["state_dict"]) != payload["digest"]:
         raise CheckpointError(f"{path}: weights are corrupt (SHA-256 digest mismatch)")
     return payload
@@ -164,7 +176,7 @@ def load_model(
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
-        detail = " ".join(s.strip() for s in first[:2])[:200]
+        detail = _first_sentence(RuntimeError(" ".join(s.strip() for s in first[:2])), 200)
         raise CheckpointError(f"{path}: weights do not fit the stored config ({detail})") from None
     model.to(device, memory_format=torch.channels_last).eval()
     meta = dict(payload.get("meta") or {})

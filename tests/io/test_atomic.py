@@ -71,3 +71,38 @@ def test_write_errors_stay_oserrors_for_callers_that_tolerate_them(tmp_path):
         write_json_atomic(tmp_path / "cache.npz", {})
     assert isinstance(err.value, DataError) and err.value.errno == errno.EISDIR
     assert str(err.value) == f"{tmp_path / 'cache.npz'}: cannot write (Is a directory)"
+
+
+def test_a_fifo_is_refused_and_left_as_it_is(tmp_path):
+    import os
+    import stat
+
+    from radarslam.io.atomic import WriteError
+
+    fifo = tmp_path / "out.json"
+    os.mkfifo(fifo)
+    with pytest.raises(WriteError, match=r"out\.json: cannot write \(it is a FIFO, not a regular"):
+        write_json_atomic(fifo, {"a": 1})
+    with pytest.raises(WriteError, match="FIFO"):
+        with atomic_path(fifo):
+            pass
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json"]  # no temporary left
+
+
+def test_a_symbolic_link_is_written_through(tmp_path):
+    real = tmp_path / "data" / "metrics.json"
+    real.parent.mkdir()
+    real.write_text("old")
+    link = tmp_path / "metrics.json"
+    link.symlink_to(real)
+    write_json_atomic(link, {"a": 1})
+    assert link.is_symlink() and real.read_text().startswith("{")
+    with atomic_path(link) as tmp:
+        assert tmp.parent == real.parent
+        tmp.write_text("new")
+    assert link.is_symlink() and real.read_text() == "new"
+    dangling = tmp_path / "later.json"
+    dangling.symlink_to(tmp_path / "data" / "later.json")
+    write_json_atomic(dangling, [])
+    assert dangling.is_symlink() and (tmp_path / "data" / "later.json").read_text().strip() == "[]"

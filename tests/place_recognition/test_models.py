@@ -263,6 +263,33 @@ def test_mismatched_checkpoints_are_checkpoint_errors(tmp_path):
         load_model(forged)
 
 
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda c: c.update(state_dict=None), "'state_dict' is not a mapping of names to tensors"),
+        (lambda c: c.update(state_dict="nope"), "'state_dict' is not a mapping"),
+        (lambda c: c["state_dict"].update({"encoder.0.weight": "x"}), "'state_dict' is not a"),
+        (lambda c: c.update(dtype="float99"), "stored weight dtype 'float99' is not float32"),
+    ],
+)
+def test_a_hand_edited_payload_is_a_checkpoint_error(tmp_path, edit, match):
+    path = save_checkpoint(tmp_path / "m.pt", build_model(TINY), TINY)
+    payload = torch.load(path, weights_only=True)
+    edit(payload)
+    torch.save(payload, tmp_path / "edited.pt")
+    with pytest.raises(CheckpointError, match=r"edited\.pt: .*" + match):
+        load_model(tmp_path / "edited.pt")
+
+
+def test_weights_that_do_not_fit_are_named_without_a_cut_word(tmp_path):
+    wider = TINY.model_copy(update={"widths": [4, 16]})
+    forged = save_checkpoint(tmp_path / "forged.pt", build_model(wider), TINY)
+    with pytest.raises(CheckpointError) as err:
+        load_model(forged)
+    detail = str(err.value).split("(", 1)[1]
+    assert detail.endswith(")") and (detail.endswith(" ...)") or len(detail) <= 201)
+
+
 def test_descriptor_dims_are_consistent_with_formula():
     for name in PRESETS:
         cfg = load_model_config(name)
