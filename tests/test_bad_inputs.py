@@ -448,3 +448,11 @@ def test_a_broken_scene_does_not_block_the_others(tiny_dataroot, tmp_path, run_c
     _no_samples_in_second_scene(root, tmp_path)
     code, err = run_cli(shlex.split(STATS.format(root=root) + " --scenes scene-0001"))
     assert code == 0, err
+
+
+def test_a_bad_demo_preset_makes_no_folder(tmp_path, run_cli):
+    out = tmp_path / "demo"
+    code, err = run_cli(["demo", "--preset", "bogus", "--out", str(out), "--no-progress"])
+    errors = [line for line in err.splitlines() if line.startswith("error:")]
+    assert code == 2 and len(errors) == 1 and "unknown simulation preset 'bogus'" in errors[0]
+    assert not out.exists()

@@ -298,10 +298,12 @@ def demo_command(
     progress: Annotated[bool, typer.Option(help="Show progress bars.")] = True,
 ) -> None:
     """Generate the synthetic demo city, run multi-session SLAM on it, evaluate and plot."""
+    from radarslam.sim.config import load_sim_config
     from radarslam.slam.outputs import check_results_dir
 
     dataroot = out / "data"
     cfg = _slam_config(None, override, False, None, preset="default")
+    load_sim_config(preset)  # a bad preset fails before any folder is made
     results = out / "results"
     check_results_dir(results)  # before generating the data
     version = ensure_synthetic(preset, dataroot, progress)
