@@ -95,6 +95,11 @@ class _Lookup:
             raise DataError(
                 f"{where}: key frame {key} at {timestamp_us} us is not in the ground truth"
             )
+        if key.index != i:  # the file names one key frame by index and another by time
+            raise DataError(
+                f"{where}: key frame {key} at {timestamp_us} us is key frame {i} of "
+                f"{key.session!r}, not {key.index}"
+            )
         return self.xy_yaw[key.session][i]
 
 

@@ -207,6 +207,8 @@ def _parse_loops_csv(path: Path, text: str) -> list[tuple[int, LoopCandidate]]:
                 )
             except (ValueError, KeyError):
                 raise DataError(f"{path}:{lineno}: malformed loop row {','.join(row)!r}") from None
+            if lc.query.index < 0 or lc.candidate.index < 0:
+                raise DataError(f"{path}:{lineno}: negative key-frame index in {','.join(row)!r}")
             if accepted and not np.all(np.isfinite([x, y, yaw])):
                 raise DataError(f"{path}:{lineno}: accepted loop with non-finite pose")
             out.append((lineno, lc))

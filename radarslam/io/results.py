@@ -262,6 +262,11 @@ def _read_run_json(run: Path) -> dict:
         raise DataError(f"{run}:{exc.lineno}: invalid JSON ({exc.msg})") from None
     if not isinstance(meta, dict):
         raise DataError(f"{run}: not a JSON object with a 'sessions' list")
+    fmt = meta.get("format")
+    if fmt is not None and fmt != RESULTS_FORMAT:
+        raise DataError(
+            f"{run}: results format {fmt!r} is not supported (this code reads {RESULTS_FORMAT})"
+        )
     return meta
 
 

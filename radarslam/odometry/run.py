@@ -220,10 +220,12 @@ def _run_once(
     try:
         for info in infos:
             health = DopplerHealth(config.doppler.min_points)
+            seen: set[str] = set()
             frames = reader.iter_frames(info, filters=filters, stride=stride)
             for k, frame in enumerate(frames):
                 if max_frames is not None and k >= max_frames:
                     break
+                seen.update(frame.sweeps)
                 gap_ok = last_t is not None and 0 < frame.timestamp_us - last_t <= max_gap_us
                 if not gap_ok:
                     odo.reset()
@@ -252,6 +254,14 @@ def _run_once(
             why = health.problem()
             if why is not None and not calibration_pass:
                 log.warning("scene %s: %s: its odometry is unreliable", info.name, why)
+            missing = [ch for ch in RADAR_CHANNELS if ch not in seen]
+            if seen and missing and not calibration_pass:
+                # a radar the dataroot does not list (sensor.json) or never recorded here
+                log.warning(
+                    "scene %s: no sweep from %s: the odometry runs on the other radars",
+                    info.name,
+                    ", ".join(missing),
+                )
     finally:
         if bar is not None:
             bar.close()

@@ -69,6 +69,39 @@ def test_run_json_that_is_binary_or_has_empty_components(tmp_path):
         evaluate_results(tmp_path, _cfg())
 
 
+def test_a_results_format_of_another_version_is_refused(tmp_path):
+    _write(tmp_path)
+    run = tmp_path / "run.json"
+    meta = json.loads(run.read_text())
+    run.write_text(json.dumps({**meta, "format": "radarslam-results/9"}))
+    with pytest.raises(DataError) as err:
+        evaluate_results(tmp_path, _cfg())
+    assert str(err.value) == (
+        f"{run}: results format 'radarslam-results/9' is not supported "
+        "(this code reads radarslam-results/1)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("index", "message"),
+    [
+        (9999, "key frame scene-a#9999 at {t} us is key frame 20 of 'scene-a', not 9999"),
+        (-3, "negative key-frame index"),
+    ],
+)
+def test_a_loop_whose_index_and_time_disagree_is_refused(tmp_path, index, message):
+    sessions = _write(tmp_path)
+    loops = tmp_path / "loops.csv"
+    lines = loops.read_text().splitlines()
+    assert lines[1].startswith("scene-a,20,")
+    lines[1] = lines[1].replace("scene-a,20,", f"scene-a,{index},", 1)
+    loops.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError) as err:
+        evaluate_results(tmp_path, _cfg())
+    text = str(err.value)
+    assert text.startswith(f"{loops}:2") and message.format(t=sessions[0].timestamps_us[20]) in text
+
+
 @pytest.mark.parametrize(
     ("continues", "message"),
     [

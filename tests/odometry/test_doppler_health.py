@@ -46,6 +46,27 @@ def test_garbage_doppler_is_said_once_per_scene(tiny_dataroot, tmp_path, caplog)
         assert re.search(r"the Doppler fits keep only [0-9]% of their points as static-world", msg)
 
 
+def test_a_radar_without_any_sweep_is_named(tiny_dataroot, tmp_path, caplog):
+    import json
+
+    root = tmp_path / "renamed"
+    shutil.copytree(tiny_dataroot, root)
+    table = root / "v1.0-mini" / "sensor.json"
+    sensors = json.loads(table.read_text())
+    for s in sensors:
+        if s["channel"] == "RADAR_FRONT":
+            s["channel"] = "RADAR_TOP"  # not a radar channel this reader knows
+    table.write_text(json.dumps(sensors))
+    reader = NuScenesRadar(root, "v1.0-mini", use_cache=False)
+    name = reader.scenes()[0].name
+    with caplog.at_level(logging.WARNING, logger="radarslam.odometry"):
+        run_odometry(reader, [name], progress=False, max_frames_per_scene=20)
+    said = [r.getMessage() for r in caplog.records if r.name == "radarslam.odometry"]
+    assert said == [
+        f"scene {name}: no sweep from RADAR_FRONT: the odometry runs on the other radars"
+    ]
+
+
 class _Fit:
     def __init__(self, valid, inliers, points):
         self.valid, self.num_inliers, self.num_points = valid, inliers, points
