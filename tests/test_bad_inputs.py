@@ -184,6 +184,18 @@ CASES: list[tuple[str, Damage, str, str]] = [
         "ego_pose.json: table file is missing",
     ),
     ("truncated pcd header", _truncate_pcd_header, "stats {root}", ".pcd: truncated header"),
+    (
+        "no radar record, stats",
+        _edit_table("sample_data", lambda records: records.clear()),
+        STATS,
+        "sample_data.json: no radar sample_data record",
+    ),
+    (
+        "no radar record, odometry",
+        _edit_table("sample_data", lambda records: records.clear()),
+        ODO,
+        "sample_data.json: no radar sample_data record",
+    ),
     ("truncated pcd points", _truncate_pcd_points, "stats {root}", ".pcd: truncated"),
     ("truncated pcd, odometry", _truncate_pcd_points, ODO, ".pcd: truncated"),
     (

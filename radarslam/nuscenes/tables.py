@@ -391,6 +391,11 @@ class NuScenesTables:
 
         token = joined("token")
         n = len(token)
+        if n == 0:
+            raise DataError(
+                f"{p_sd}: no radar sample_data record (of a sensor whose channel is one of "
+                f"{', '.join(RADAR_CHANNELS)})"
+            )
         tindex = TokenIndex(token, what=str(p_sd))
 
         def chain(arr: np.ndarray, which: str) -> np.ndarray:
