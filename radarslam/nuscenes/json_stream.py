@@ -26,6 +26,47 @@ _TOKEN_RE = re.compile(rb'"token"\s*:\s*"([^"]*)"')
 _WS = b" \t\r\n"
 
 
+def _json_type(value) -> str:
+    """What a decoded JSON value is, in JSON's words."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    return "a list" if isinstance(value, list) else "an object"
+
+
+def _shape_problem(path: Path, data) -> DataError | None:
+    """Why decoded JSON is not a list of records (objects), or None."""
+    if not isinstance(data, list):
+        return DataError(f"{path}: expected a JSON list of records, got {_json_type(data)}")
+    for i, rec in enumerate(data):
+        if not isinstance(rec, dict):
+            return DataError(f"{path}: record {i} is {_json_type(rec)}, expected an object")
+    return None
+
+
+#: A streamed table whose structure looks wrong is parsed whole, to say what it holds instead,
+#: up to this size (the error path only).
+_DIAGNOSE_MAX_BYTES = 256 * 1024 * 1024
+
+
+def _diagnosed(path: Path, exc: DataError) -> DataError:
+    """A streamed table's structural error, said as what the file holds where it is valid JSON
+    of another shape (null, a list of numbers, a list of lists)."""
+    try:
+        if path.stat().st_size > _DIAGNOSE_MAX_BYTES:
+            return exc
+        with path.open("rb") as fh:
+            data = json.load(fh)
+    except (OSError, ValueError):  # not JSON at all (ValueError: decode errors): as it was
+        return exc
+    return _shape_problem(path, data) or exc
+
+
 def _load_json_list(path: Path) -> list:
     try:
         with path.open("rb") as fh:
@@ -40,11 +81,9 @@ def _load_json_list(path: Path) -> list:
         raise DataError(f"{path}: corrupt JSON (not UTF-8 text)") from None
     except OSError as exc:
         raise DataError(f"{path}: cannot read table ({exc.strerror})") from None
-    if not isinstance(data, list):
-        raise DataError(f"{path}: expected a JSON list of records, got {type(data).__name__}")
-    for i, rec in enumerate(data):
-        if not isinstance(rec, dict):
-            raise DataError(f"{path}: record {i} is {type(rec).__name__}, expected an object")
+    problem = _shape_problem(path, data)
+    if problem is not None:
+        raise problem
     return data
 
 
@@ -107,7 +146,10 @@ def _iter_chunks(path: Path) -> Iterator[tuple[bytes, int]]:
                 carry = buf
                 continue
             body = buf[: last + 1]
-            _check_structure(path, body, base, started)
+            try:
+                _check_structure(path, body, base, started)
+            except DataError as exc:
+                raise _diagnosed(path, exc) from None
             started = True
             yield body, base
             carry = buf[last + 1 :]
@@ -117,7 +159,7 @@ def _iter_chunks(path: Path) -> Iterator[tuple[bytes, int]]:
             what = (
                 "truncated" if not tail.endswith(b"]") else f"unexpected {tail[:20]!r} at the end"
             )
-            raise DataError(f"{path}: corrupt JSON ({what}, after byte {base})")
+            raise _diagnosed(path, DataError(f"{path}: corrupt JSON ({what}, after byte {base})"))
 
 
 def _check_structure(path: Path, body: bytes, base: int, started: bool) -> None:

@@ -132,7 +132,18 @@ def _damage(root, name, fn):
     [
         ("scene", lambda b: b[: len(b) // 2], r"scene\.json: corrupt JSON \(line"),
         ("log", lambda b: b'{"a": 1}', r"log\.json: expected a JSON list"),
-        ("sample", lambda b: b"[1, 2]", r"sample\.json: record 0 is int"),
+        ("sample", lambda b: b"[1, 2]", r"sample\.json: record 0 is a number, expected an object"),
+        (
+            "sample_data",
+            lambda b: b"null",
+            r"sample_data\.json: expected a JSON list of records, got null",
+        ),
+        ("ego_pose", lambda b: b"[1, 2, 3]", r"ego_pose\.json: record 0 is a number, expected an"),
+        (
+            "sample_data",
+            lambda b: b"[[1]," + b[1:],
+            r"sample_data\.json: record 0 is a list, expected",
+        ),
         (
             "sample_data",
             lambda b: b[: len(b) - 300],
