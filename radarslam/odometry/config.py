@@ -31,6 +31,16 @@ class PointsConfig(StrictModel):
     dynprop_states: list[int] | None = None
     ambig_states: list[int] | None = Field(default_factory=lambda: [3])
 
+    @field_validator("invalid_states", "dynprop_states", "ambig_states")
+    @classmethod
+    def _ars408_states(cls, v: list[int] | None, info) -> list[int] | None:
+        # a state the sensor never reports would keep no point at all
+        top = {"invalid_states": 17, "dynprop_states": 7, "ambig_states": 4}[info.field_name]
+        bad = [s for s in v or [] if not 0 <= s <= top]
+        if bad:
+            raise ValueError(f"state {bad[0]} is not one the ARS408 reports (0-{top})")
+        return v
+
     @model_validator(mode="after")
     def _range_order(self) -> PointsConfig:
         if self.min_range_m >= self.max_range_m:

@@ -39,6 +39,9 @@ def test_defaults_and_yaml_round_trip():
         ("points.min_range_m=200", r"'points': .*min_range_m \(200\.0\) must be below max_range_m"),
         ("points.max_range_m=0.5", r"min_range_m \(1\.0\) must be below max_range_m \(0\.5\)"),
         ("points.nope=1", r"unknown key 'points\.nope'"),
+        ("points.invalid_states=[999]", r"'points\.invalid_states': .*state 999 is not one the"),
+        ("points.dynprop_states=[0,8]", r"'points\.dynprop_states': .*state 8 .* \(0-7\)"),
+        ("points.ambig_states=[-1]", r"'points\.ambig_states': .*state -1 .* \(0-4\)"),
     ],
 )
 def test_bad_values_are_config_errors(override, match):
