@@ -445,10 +445,11 @@ class NuScenesTables:
             u_q[dest] = _number_block(p_ego, recs, "rotation", 4, bools)
             found[dest] = True
         if not found.all():
-            missing = uniq[~found][0].decode()
+            first = int(np.flatnonzero(~found)[0])
+            record = token[int(np.flatnonzero(inverse == first)[0])].decode()
             raise DataError(
-                f"{p_ego}: ego pose {missing!r} of a radar sample_data is missing "
-                f"({int((~found).sum())} missing in all)"
+                f"{p_ego}: ego pose {uniq[first].decode()!r}, named by radar sample_data "
+                f"{record!r} of {p_sd.name}, is missing ({int((~found).sum())} missing in all)"
             )
         norm_q = quat_norms(u_q)
         finite_q, finite_t = np.isfinite(u_q).all(axis=1), np.isfinite(u_t).all(axis=1)

@@ -194,7 +194,12 @@ def _radar(recs):
         ),
         ("sample_data", lambda rs: _radar(rs).update(timestamp=1.5), "timestamp 1.5 is not an int"),
         ("sample_data", lambda rs: _radar(rs).update(calibrated_sensor_token="q"), "'q' is not in"),
-        ("ego_pose", lambda rs: rs.pop(-1), r"ego_pose\.json: ego pose .* is missing"),
+        (
+            "ego_pose",
+            lambda rs: rs.pop(-1),
+            r"ego_pose\.json: ego pose '\w+', named by radar sample_data '\w+' of "
+            r"sample_data\.json, is missing \(1 missing in all\)",
+        ),
         ("ego_pose", lambda rs: rs[-1].update(rotation=[0, 0, 0, 0]), "zero rotation quaternion"),
         ("ego_pose", lambda rs: rs[-1].update(translation=[1, 2]), "expected 3 numbers"),
         ("sample", lambda rs: rs[0].update(scene_token="s"), "refers to scene 's'"),
