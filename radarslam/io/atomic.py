@@ -5,8 +5,9 @@ An interrupted run therefore leaves either the old file or the new one, never ha
 several files that belong together. The final renames run with Ctrl-C and SIGTERM held back
 (:func:`interrupts_deferred`): an interrupt there takes effect once they are done.
 A target that cannot be written (its folder is a file, it is a folder, no permission, disk full)
-raises :class:`WriteError`, a :class:`~radarslam.errors.DataError` naming the target; so does
-a FIFO, device or socket (a rename would put a plain file in its place). A symbolic link is
+raises :class:`WriteError`, a :class:`~radarslam.errors.DataError` naming the target; so do a
+block device and a socket. A FIFO or character device (``--json /dev/stdout``, a pipe) is
+written in place, as a stream: a rename would put a plain file where it is. A symbolic link is
 written through: the file it points to is replaced, the link stays.
 
 Temporary names carry the writing process's id, ``.<target name>.<pid>-<random>.tmp`` (a
@@ -255,25 +256,31 @@ def _fsync_folder(folder: Path) -> None:
             os.close(fd)
 
 
-def _target(path: Path) -> Path:
-    """The file an atomic write replaces: where a symbolic link points (the link stays a link),
-    never a FIFO, device or socket, which a rename would replace by a plain file."""
+def _target(path: Path) -> tuple[Path, bool]:
+    """(the file an atomic write replaces, whether it is a stream). A symbolic link is written
+    through (the link stays a link). A FIFO or character device (``/dev/stdout``, a pipe) is a
+    stream: written in place, since a rename would put a plain file where it is. A block device
+    or socket is refused."""
     try:
         st = os.stat(path)  # follows links
     except FileNotFoundError:
-        return Path(os.path.realpath(path)) if path.is_symlink() else path  # dangling: its target
+        # a dangling link: where it points
+        return (Path(os.path.realpath(path)) if path.is_symlink() else path), False
     except OSError:
-        return path  # the write itself reports why (no permission, a file in the way)
-    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
-        kind = (
-            "a FIFO"
-            if stat.S_ISFIFO(st.st_mode)
-            else "a socket"
-            if stat.S_ISSOCK(st.st_mode)
-            else "a device"
-        )
-        raise WriteError(f"{path}: cannot write (it is {kind}, not a regular file)")
-    return Path(os.path.realpath(path)) if path.is_symlink() else path
+        return path, False  # the write itself reports why (no permission, a file in the way)
+    if stat.S_ISFIFO(st.st_mode) or stat.S_ISCHR(st.st_mode):
+        return path, True
+    if stat.S_ISBLK(st.st_mode) or stat.S_ISSOCK(st.st_mode):
+        kind = "a block device" if stat.S_ISBLK(st.st_mode) else "a socket"
+        raise WriteError(f"{path}: cannot write (it is {kind}, not a file)")
+    return (Path(os.path.realpath(path)) if path.is_symlink() else path), False
+
+
+def _open_stream(path: Path, mode: str, encoding: str | None) -> IO:
+    try:
+        return open(path, mode, encoding=None if "b" in mode else encoding)
+    except OSError as exc:
+        raise cannot_write(path, exc) from None
 
 
 def _make_parent(path: Path) -> None:
@@ -285,8 +292,13 @@ def _make_parent(path: Path) -> None:
 
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "w", encoding: str | None = "utf-8") -> Iterator[IO]:
-    """Open a temporary file next to ``path``; on clean exit it replaces ``path`` atomically."""
-    path = _target(Path(path))
+    """Open a temporary file next to ``path``; on clean exit it replaces ``path`` atomically.
+    A FIFO or character device is written in place (a stream has no old content to keep)."""
+    path, stream = _target(Path(path))
+    if stream:
+        with _open_stream(path, mode, encoding) as fh:
+            yield fh
+        return
     _make_parent(path)
     binary = "b" in mode
     fd = tmp = None
@@ -348,17 +360,29 @@ def atomic_path(path: str | Path) -> contextlib.AbstractContextManager[Path]:
 
 class _AtomicPath(contextlib.AbstractContextManager):
     def __init__(self, path: Path):
-        self.path = path = _target(path)
+        self.path, self.stream = _target(path)
+        path = self.path
         # the target's suffix last: savefig and open3d choose the format by it
         name = f"{_temp_prefix(path.name)}{secrets.token_hex(4)}.tmp{path.suffix}"
-        self.tmp = path.with_name(name)
+        # a stream's folder (/dev) is no place for a file: the system's temporary folder is
+        self.tmp = Path(tempfile.gettempdir(), name) if self.stream else path.with_name(name)
 
     def __enter__(self) -> Path:
-        _make_parent(self.path)
+        if not self.stream:
+            _make_parent(self.path)
         return self.tmp
 
     def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
+        if exc_type is None and self.stream:  # what the library wrote, copied into the stream
+            try:
+                with open(self.tmp, "rb") as src, _open_stream(self.path, "wb", None) as dst:
+                    shutil.copyfileobj(src, dst)
+            except OSError as err:
+                raise cannot_write(self.path, err) from None
+            finally:
+                with contextlib.suppress(OSError):
+                    os.unlink(self.tmp)
+        elif exc_type is None:
             try:
                 _put_in_place(self.tmp, self.path)
             except OSError as err:

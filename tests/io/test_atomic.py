@@ -73,21 +73,48 @@ def test_write_errors_stay_oserrors_for_callers_that_tolerate_them(tmp_path):
     assert str(err.value) == f"{tmp_path / 'cache.npz'}: cannot write (Is a directory)"
 
 
-def test_a_fifo_is_refused_and_left_as_it_is(tmp_path):
+def test_a_fifo_is_written_as_a_stream_and_stays_a_fifo(tmp_path):
     import os
     import stat
-
-    from radarslam.io.atomic import WriteError
+    import threading
 
     fifo = tmp_path / "out.json"
     os.mkfifo(fifo)
-    with pytest.raises(WriteError, match=r"out\.json: cannot write \(it is a FIFO, not a regular"):
-        write_json_atomic(fifo, {"a": 1})
-    with pytest.raises(WriteError, match="FIFO"):
-        with atomic_path(fifo):
-            pass
+    got: list[bytes] = []
+
+    def drain():
+        with open(fifo, "rb") as fh:
+            got.append(fh.read())
+
+    for write in (
+        lambda: write_json_atomic(fifo, {"a": 1}),
+        lambda: _library_writes(fifo, b"plot bytes"),
+    ):
+        reader = threading.Thread(target=drain)
+        reader.start()
+        write()
+        reader.join(timeout=10)
+        assert not reader.is_alive()
+    assert got == [b'{\n  "a": 1\n}\n', b"plot bytes"]
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json"]  # no temporary left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json"]  # no temporary beside it
+
+
+def _library_writes(path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)  # as savefig or torch.save would
+
+
+def test_a_socket_is_refused(tmp_path):
+    import socket
+
+    from radarslam.io.atomic import WriteError
+
+    path = tmp_path / "s.json"
+    with socket.socket(socket.AF_UNIX) as sock:
+        sock.bind(str(path))
+        with pytest.raises(WriteError, match=r"s\.json: cannot write \(it is a socket, not a file"):
+            write_json_atomic(path, {})
 
 
 def test_a_symbolic_link_is_written_through(tmp_path):
