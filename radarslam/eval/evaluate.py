@@ -22,6 +22,7 @@ from radarslam.config import StrictModel
 from radarslam.errors import DataError
 from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth, evaluate_loops
 from radarslam.eval.metrics import align_se2, ate, drift, path_lengths_m, rpe, to_xy_yaw
+from radarslam.geometry import invert
 from radarslam.io.atomic import write_json_atomic
 from radarslam.io.loops import read_loops_csv_numbered
 from radarslam.io.results import ResultsFolder, read_results, trajectory_path
@@ -196,7 +197,9 @@ def evaluate_results(
             errors_t[s][kind] = ((t - t[0]) / 1e6, errs)
             pooled[kind]["ate"].append(errs)
             pooled[kind]["first"].append(ate(e, r, align="first").errors_m)
-            pooled[kind]["est"].append(e)
+            # Odometry sessions start in frames of their own: placed on their ground-truth
+            # first pose they share the world, and their joint ATE is the baseline of SLAM's.
+            pooled[kind]["est"].append(r[0] @ invert(e[0]) @ e if kind == "odometry" else e)
             pooled[kind]["ref"].append(r)
             pooled[kind].setdefault("session", []).append(s)
     run: dict[str, dict[str, float | None]] = {}
@@ -207,11 +210,12 @@ def evaluate_results(
         all_err = np.concatenate(p["ate"])
         first_err = np.concatenate(p["first"])
         # SLAM sessions outside the anchored map live in their own frames: one alignment
-        # across them would measure nothing, so the SLAM joint ATE covers the anchored map.
+        # across them would measure nothing, so the joint ATE covers the anchored map, for the
+        # odometry too (the same sessions: its joint ATE is the baseline of SLAM's).
         in_joint = [
             i
             for i, s in enumerate(p["session"])
-            if kind != "slam" or folder.components is None or s in folder.components[0]
+            if folder.components is None or s in folder.components[0]
         ]
         joint_rmse_m = None  # nothing to align jointly
         if in_joint:

@@ -132,6 +132,28 @@ def test_eval_errors(tmp_path):
         )
 
 
+def test_odometry_joint_ate_starts_every_session_on_its_ground_truth(tmp_path):
+    # Odometry sessions start in frames of their own (b here 500 m off and turned); placed on
+    # their first ground-truth pose they are joined by one alignment, and what is left is drift.
+    t = np.arange(20, dtype=np.int64) * 500_000 + 1_000_000
+    gt_a = np.stack([se2_to_matrix(0.5 * i, 0.0, 0.0) for i in range(20)])
+    gt_b = np.stack([se2_to_matrix(0.0, 0.5 * i, np.pi / 2) for i in range(20)])
+    off = se2_to_matrix(500.0, -300.0, 1.0)
+    drifted = np.stack([g @ se2_to_matrix(0.01 * i, 0.0, 0.0) for i, g in enumerate(gt_b)])
+    sessions = [
+        SessionResult("a", t, gt_a.copy(), gt_a.copy(), gt_a),
+        SessionResult("b", t + 20_000_000, gt_b.copy(), off @ drifted, gt_b),
+    ]
+    write_results(tmp_path, sessions, plots=False)
+    run = evaluate_results(tmp_path, EvalConfig(plots=False)).run["odometry"]
+    assert run["joint_sessions"] == 2
+    placed = np.concatenate([gt_a, drifted])  # b started on gt_b[0]: drifted as written
+    assert run["ate_joint_rmse_m"] == pytest.approx(
+        ate(placed, np.concatenate([gt_a, gt_b]), align="se2").rmse_m
+    )
+    assert 0.01 < run["ate_joint_rmse_m"] < 0.2
+
+
 def test_associate_nearest_within_tolerance():
     gt = np.array([0, 100, 200, 300])
     i_e, i_g = associate(np.array([101, 260, 500, 0]), gt, 50)
@@ -153,7 +175,9 @@ def test_slam_joint_ate_covers_the_anchored_map_only(tmp_path):
     report = evaluate_results(tmp_path, EvalConfig(plots=True))
     assert report.run["slam"]["joint_sessions"] == 1
     assert report.run["slam"]["ate_joint_rmse_m"] < 1e-6
-    assert report.run["odometry"]["ate_joint_rmse_m"] > 10.0  # odometry frames are unrelated
+    # the odometry's joint ATE covers the same sessions, each started on its ground truth
+    assert report.run["odometry"]["joint_sessions"] == 1
+    assert report.run["odometry"]["ate_joint_rmse_m"] < 1e-6
     assert (tmp_path / "plots" / "trajectories.png").is_file()
     with pytest.raises(DataError, match="components"):
         (tmp_path / "run.json").write_text(
