@@ -59,8 +59,34 @@ def odometry(
     def fmt(v, spec):
         return "n/a" if v is None else format(v, spec)
 
+    drift = "n/a (no 100 m stretch)" if tot["drift_pct"] is None else f"{tot['drift_pct']:.2f} %"
     typer.echo(
         f"{method}: {tot['frames']} frames, {tot['path_length_m']:.0f} m, "
-        f"ATE {fmt(tot['ate_rmse_m'], '.2f')} m, drift {fmt(tot['drift_pct'], '.2f')} %, "
+        f"ATE {fmt(tot['ate_rmse_m'], '.2f')} m, drift per 100 m {drift}, "
         f"{tot['mean_ms_per_frame']:.1f} ms/frame -> {out}"
+    )
+    rigs = summary.get("doppler_calibration_by_rig") or [summary.get("doppler_calibration")]
+    for cal in rigs:
+        line = calibration_line(cal)
+        if line:
+            typer.echo(line)
+
+
+def calibration_line(cal: dict | None) -> str | None:
+    """One line of a rig's Doppler calibration as ``summary.json`` holds it, or None."""
+    if not cal or not cal.get("mounting_yaw_error_deg"):
+        return None
+    yaws = cal["mounting_yaw_error_deg"]
+    sigmas = cal.get("mounting_yaw_sigma_deg") or {}
+    parts = [
+        f"{ch.removeprefix('RADAR_')} {v:+.2f}" + (f" +- {sigmas[ch]:.2f}" if ch in sigmas else "")
+        for ch, v in yaws.items()
+    ]
+    scenes = ", ".join(cal.get("scenes") or [])
+    scale = f"radar speed scale error {cal.get('radar_speed_scale_error', 0.0):+.3f} (configured"
+    if cal.get("speed_scale_sigma"):  # estimated on top of the configured one
+        scale += f"; {cal['speed_scale_error']:+.4f} +- {cal['speed_scale_sigma']:.4f} left"
+    return (
+        f"Doppler calibration{f' ({scenes})' if scenes else ''}: mounting yaw error (deg) "
+        f"{'; '.join(parts)}; {scale})"
     )

@@ -128,3 +128,35 @@ def test_eval_reads_the_odometry_folder(tiny_dataroot, tmp_path):
     # eval's files belong to the folder: a re-run replaces it
     assert CliRunner().invoke(app, args).exit_code == 0
     assert not (out / "metrics.json").exists()
+
+
+def test_the_calibration_is_printed_as_summary_json_holds_it():
+    from radarslam.odometry.commands import calibration_line
+
+    cal = {
+        "yaw_bias_model": "mounting",
+        "radar_speed_scale_error": -0.003,
+        "rig": "abc",
+        "scenes": ["scene-0916"],
+        "mounting_yaw_error_deg": {"RADAR_FRONT": -0.322, "RADAR_BACK_LEFT": 1.283},
+        "mounting_yaw_sigma_deg": {"RADAR_FRONT": 0.233, "RADAR_BACK_LEFT": 0.22},
+        "speed_scale_error": 0.0012,
+        "speed_scale_sigma": 0.0004,
+    }
+    assert calibration_line(cal) == (
+        "Doppler calibration (scene-0916): mounting yaw error (deg) FRONT -0.32 +- 0.23; "
+        "BACK_LEFT +1.28 +- 0.22; radar speed scale error -0.003 (configured; +0.0012 +- 0.0004 "
+        "left)"
+    )
+    assert calibration_line({**cal, "speed_scale_sigma": 0.0}).endswith("-0.003 (configured)")
+    assert calibration_line({"yaw_bias_model": "none"}) is None
+    assert calibration_line(None) is None
+
+
+def test_the_command_prints_the_calibration(tiny_dataroot, tmp_path):
+    args = ["odometry", "--dataroot", str(tiny_dataroot), "--out", str(tmp_path / "o")]
+    result = CliRunner().invoke(app, [*args, "--no-progress"])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert any(ln.startswith("ours: ") and "drift per 100 m" in ln for ln in lines), lines
+    assert any(ln.startswith("Doppler calibration") for ln in lines), lines
