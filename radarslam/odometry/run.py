@@ -345,12 +345,12 @@ def _self_calibrated(reader, infos, config, *, progress, max_frames, stride):
 def _spread(first: OdometryTrajectory, second: OdometryTrajectory) -> np.ndarray:
     """The first pass's CPU per frame of the second (a strided pass ran fewer frames): each
     scene's total shared out over that scene's frames, so per-scene and pooled costs add up."""
-    out = np.zeros(len(second))
-    for name in dict.fromkeys(second.scene_names):
-        mine = np.array([s == name for s in second.scene_names])
-        theirs = np.array([s == name for s in first.scene_names], dtype=bool)
-        out[mine] = first.processing_ms[theirs].sum() / mine.sum() if theirs.any() else 0.0
-    return out
+    scenes, of_second = np.unique(np.asarray(second.scene_names), return_inverse=True)
+    at = np.searchsorted(scenes, np.asarray(first.scene_names))
+    known = at < len(scenes)
+    known[known] = scenes[at[known]] == np.asarray(first.scene_names)[known]
+    spent = np.bincount(at[known], weights=first.processing_ms[known], minlength=len(scenes))
+    return (spent / np.bincount(of_second, minlength=len(scenes)))[of_second]
 
 
 _ROW_KEYS = ("t", "pose", "gt", "cov", "scene", "seg", "kf", "token", "status", "npts", "ms")

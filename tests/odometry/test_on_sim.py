@@ -189,6 +189,19 @@ def test_strided_calibration_pass(tiny_dataroot, monkeypatch):
         OdometryConfig.model_validate({"fusion": {"calibration": {"pass_frame_stride": 9}}})
 
 
+def test_the_pass_cost_is_shared_out_scene_by_scene():
+    from types import SimpleNamespace
+
+    from radarslam.odometry.run import _spread
+
+    first = SimpleNamespace(
+        scene_names=["a", "a", "b", "c"], processing_ms=np.array([1, 2, 3, 4.0])
+    )
+    second = SimpleNamespace(scene_names=["b", "a", "a", "a", "b", "d"], processing_ms=np.zeros(6))
+    # a: 3 ms over 3 frames, b: 3 ms over 2, c never ran twice, d had no pass
+    np.testing.assert_allclose(_spread(first, second), [1.5, 1, 1, 1, 1.5, 0])
+
+
 @pytest.mark.parametrize("fold", [True, False])
 def test_reset_folds_the_estimated_mounting_yaws_into_the_sweeps(tiny_dataroot, fold):
     """At a reset the mounting yaws estimated so far are applied to the sweeps from then on and
