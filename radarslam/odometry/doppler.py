@@ -37,6 +37,7 @@ variance.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -45,6 +46,7 @@ import numpy as np
 from pydantic import Field
 
 from radarslam.config import StrictModel
+from radarslam.odometry.linalg3 import inv3, solve3
 from radarslam.types import RADAR_CHANNELS, RadarFrame, RadarSweep
 
 #: Smallest eigenvalue of ``A^T A / n`` (directions only) below which the velocity is unobservable:
@@ -166,6 +168,16 @@ def _as_rng(rng) -> np.random.Generator:
     if isinstance(rng, np.random.Generator):
         return rng
     return np.random.default_rng(0 if rng is None else rng)
+
+
+@functools.lru_cache(maxsize=4096)
+def _minimal_sets(seed: int, n: int, k: int, p: int) -> np.ndarray:
+    """The joint fit's ``k`` random minimal sets of ``p`` of ``n`` points: a generator seeded
+    afresh per frame draws them, so they depend on these four numbers only (kept, read-only:
+    seeding a generator cost more than the rest of the draw)."""
+    out = np.random.default_rng(seed).integers(0, n, size=(k, p))
+    out.flags.writeable = False
+    return out
 
 
 def _turned_rows(rows: np.ndarray, levers: np.ndarray) -> np.ndarray:
@@ -379,48 +391,46 @@ class DopplerEstimator:
             sweeps = list(frame)
         c = self.config
         min_range = max(c.min_range_m, 1e-6)
-        rows, rhs, lever, owner = [], [], [], []
-        sizes: dict[str, int] = {}
-        for k, sw in enumerate(sweeps):
-            n = len(sw)
-            sizes[sw.channel] = n
-            if n == 0:
-                continue
-            # The fields are read once here (not through RadarSweep's properties, which rebuild
-            # the (N, 2) arrays at every access): same u and v_r as sweep_doppler().
-            pts = sw.points
-            x = pts["x"].astype(np.float64)
-            y = pts["y"].astype(np.float64)
-            vx = pts["vx"].astype(np.float64)
-            vy = pts["vy"].astype(np.float64)
-            r = np.sqrt(x * x + y * y)
-            ok = np.isfinite(r) & (r > min_range) & np.isfinite(vx) & np.isfinite(vy)
-            if c.require_unambiguous:
-                ok &= pts["ambig_state"] == 3
-            sel = np.flatnonzero(ok)
-            if not len(sel):
-                continue
-            rs = r[sel]
-            ux, uy = x[sel] / rs, y[sel] / rs
-            vr = ux * vx[sel] + uy * vy[sel]
-            pose = np.asarray(sw.ego_from_sensor, dtype=np.float64)
-            rot, t = pose[:2, :2], pose[:2, 3]
-            block = np.empty((len(sel), 3))
-            block[:, 0] = ux * rot[0, 0] + uy * rot[0, 1]  # line of sight in the ego frame
-            block[:, 1] = ux * rot[1, 0] + uy * rot[1, 1]
-            block[:, 2] = block[:, 1] * t[0] - block[:, 0] * t[1]  # u . (w x t) / w
-            rows.append(block)
-            rhs.append(-vr)
-            lever.append((-t[1], t[0]))
-            owner.append((k, sel))
         channels = tuple(sw.channel for sw in sweeps)
-        if not rows:
+        sizes: dict[str, int] = {sw.channel: len(sw) for sw in sweeps}
+        filled = [k for k, sw in enumerate(sweeps) if len(sw)]
+        if not filled:
             return self._invalid_frame(sizes, channels, 0)
-        a = np.concatenate(rows) if len(rows) > 1 else rows[0]
-        b = np.concatenate(rhs) if len(rhs) > 1 else rhs[0]
-        counts = [len(r) for r in rhs]
-        # Per point, which radar's lever arm: the relative threshold needs each sensor's speed.
-        radar_of = np.repeat(np.arange(len(lever)), counts)
+        # All radars' points in one set of arrays (the fields read once, not through RadarSweep's
+        # properties, which rebuild the (N, 2) arrays at every access): same u and v_r as
+        # sweep_doppler(), element by element, at one numpy call per field instead of one per
+        # field and radar.
+        pts = [sweeps[k].points for k in filled]
+        px, py, vx, vy = (
+            np.concatenate([p[name] for p in pts]).astype(np.float64)
+            for name in ("x", "y", "vx", "vy")
+        )
+        counts_all = np.array([len(p) for p in pts])
+        sweep_of = np.repeat(np.arange(len(filled)), counts_all)
+        r = np.sqrt(px * px + py * py)
+        ok = np.isfinite(r) & (r > min_range) & np.isfinite(vx) & np.isfinite(vy)
+        if c.require_unambiguous:
+            ok &= np.concatenate([p["ambig_state"] for p in pts]) == 3
+        sel = np.flatnonzero(ok)
+        if not len(sel):
+            return self._invalid_frame(sizes, channels, 0)
+        # Radars with a usable point, in frame order: their index is each point's radar_of.
+        per_sweep = np.bincount(sweep_of[sel], minlength=len(filled))
+        used = np.flatnonzero(per_sweep)
+        poses = np.array([np.asarray(sweeps[filled[j]].ego_from_sensor, np.float64) for j in used])
+        compact = np.full(len(filled), -1)
+        compact[used] = np.arange(len(used))
+        radar_of = compact[sweep_of[sel]]
+        rot, t = poses[radar_of, :2, :2], poses[radar_of, :2, 3]
+        rs = r[sel]
+        ux, uy = px[sel] / rs, py[sel] / rs
+        a = np.empty((len(sel), 3))
+        a[:, 0] = ux * rot[:, 0, 0] + uy * rot[:, 0, 1]  # line of sight in the ego frame
+        a[:, 1] = ux * rot[:, 1, 0] + uy * rot[:, 1, 1]
+        a[:, 2] = a[:, 1] * t[:, 0] - a[:, 0] * t[:, 1]  # u . (w x t) / w
+        b = -(ux * vx[sel] + uy * vy[sel])
+        # Per radar, its lever arm: the relative threshold needs each sensor's speed.
+        levers = np.stack([-poses[:, 1, 3], poses[:, 0, 3]], axis=1)
         if bounds is not None and c.speed_scale_error:
             bounds = bounds.scaled(1.0 + c.speed_scale_error)  # in the fit's raw units
         lateral = c.lateral_velocity_sigma_mps
@@ -428,19 +438,18 @@ class DopplerEstimator:
         if lateral is None and fallback is not None and not self._observability(a, None)[1]:
             if self._observability(a, fallback, max_yaw_sigma=_FALLBACK_YAW_SIGMA_RADPS)[1]:
                 lateral = fallback
-        levers = np.array(lever)
         inl, x, cov, ego_static, yaw_obs = self._solve_joint(
             a, b, levers, radar_of, bounds, lateral
         )
         if x is None:
             return self._invalid_frame(sizes, channels, len(a))
-        masks = {sw.channel: np.zeros(len(sw), dtype=bool) for sw in sweeps}
-        start = 0
-        for (k, sel), cnt in zip(owner, counts, strict=True):
-            masks[sweeps[k].channel][sel] = inl[start : start + cnt]
-            start += cnt
+        static = np.zeros(len(ok), dtype=bool)
+        static[sel] = inl
+        masks = {sw.channel: np.zeros(0, dtype=bool) for sw in sweeps}
+        for k, mask in zip(filled, np.split(static, np.cumsum(counts_all)[:-1]), strict=True):
+            masks[sweeps[k].channel] = mask
         res = a[inl] @ x - b[inl]
-        fitted = [sweeps[k].channel for k, _ in owner]
+        fitted = [sweeps[filled[j]].channel for j in used]
         mount = self._mounting_jacobian(a, b, x, inl, radar_of, fitted, levers, lateral)
         n_ch = len(RADAR_CHANNELS)
         info, vector = np.zeros((n_ch, n_ch)), np.zeros(n_ch)
@@ -480,7 +489,7 @@ class DopplerEstimator:
         da = _turned_rows(ai, levers[ri])
         resid = bi - ai @ x
         terms = da * resid[:, None] - ai * (da @ x)[:, None]
-        m = np.linalg.inv(ai.T @ ai + self._prior(lateral) * self.config.noise_floor_mps**2)
+        m = inv3(ai.T @ ai + self._prior(lateral) * self.config.noise_floor_mps**2)
         for k, ch in enumerate(channels):
             sel = ri == k
             if sel.any():
@@ -511,7 +520,7 @@ class DopplerEstimator:
         dta = np.stack(
             [np.bincount(cols, weights=d * ai[:, j], minlength=n_ch) for j in range(3)], axis=1
         )
-        m = np.linalg.inv(ai.T @ ai + self._prior(lateral) * var)
+        m = inv3(ai.T @ ai + self._prior(lateral) * var)
         info = (np.diag(dtd) - dta @ m @ dta.T) / var
         vector = (dtr - dta @ m @ (ai.T @ r)) / var
         return 0.5 * (info + info.T), vector
@@ -554,11 +563,11 @@ class DopplerEstimator:
         atb = a.T @ b
         # First pass fixes the residual variance, which the priors (given in physical sigmas) must
         # be expressed against, since the covariance is that variance times (A^T A + P)^-1.
-        x = np.linalg.solve(ata + prior * c.noise_floor_mps**2, atb)
+        x = solve3(ata + prior * c.noise_floor_mps**2, atb)
         res = b - a @ x
         dof = len(b) - 3
         var = max(float(res @ res) / dof if dof > 0 else 0.0, c.noise_floor_mps**2)
-        inv = np.linalg.inv(ata + prior * var)
+        inv = inv3(ata + prior * var)
         x = inv @ atb
         cov = var * inv
         return x, 0.5 * (cov + cov.T)
@@ -635,7 +644,7 @@ class DopplerEstimator:
         yaw_ok = self._observability(a_s, lateral, ata_s)[1]
         var = max(float(np.mean(b_s**2)), c.noise_floor_mps**2)
         ata = ata_s + self._prior(lateral) * var + np.eye(3) * (var / _HUGE_VARIANCE)
-        cov = var * np.linalg.inv(ata)
+        cov = var * inv3(ata)
         return slow, np.zeros(3), 0.5 * (cov + cov.T), True, yaw_ok
 
     def _solve_moving(
@@ -663,7 +672,6 @@ class DopplerEstimator:
             thr = _threshold(speed, c.inlier_threshold_mps, c.relative_threshold)
             return np.abs(a @ x - b) < thr
 
-        gen = np.random.default_rng(c.seed)
         k = c.iterations
         # 3-point minimal sets where the radars' geometry observes the yaw rate; else 2 points,
         # for (vx, yaw rate) with the lateral prior's vy = 0, or for (vx, vy) with the yaw rate 0.
@@ -675,7 +683,7 @@ class DopplerEstimator:
         if n < p:
             return None
         # Duplicate indices give a singular minimal set, which the determinant test drops.
-        samples = gen.integers(0, n, size=(k, p))
+        samples = _minimal_sets(c.seed, n, k, p)
         best_x, best_count = None, -1
         am = a[samples][:, :, cols]  # (k, p, p)
         bm = b[samples]

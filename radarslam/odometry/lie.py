@@ -20,11 +20,6 @@ def _v_coeffs(theta: float) -> tuple[float, float]:
     return math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta
 
 
-def _v_matrix(theta: float) -> np.ndarray:
-    a, b = _v_coeffs(theta)
-    return np.array([[a, -b], [b, a]])
-
-
 def exp_se2(xi) -> np.ndarray:
     """4x4 pose of the tangent vector ``(rho_x, rho_y, theta)`` (a constant twist times dt)."""
     rx, ry, theta = float(xi[0]), float(xi[1]), float(xi[2])
@@ -35,9 +30,12 @@ def exp_se2(xi) -> np.ndarray:
 
 def log_se2(pose: np.ndarray) -> np.ndarray:
     """Tangent vector ``(rho_x, rho_y, theta)`` of a 4x4 planar pose (z, roll, pitch ignored)."""
-    theta = float(np.arctan2(pose[1, 0], pose[0, 0]))
-    rho = np.linalg.solve(_v_matrix(theta), pose[:2, 3])
-    return np.array([rho[0], rho[1], theta])
+    theta = math.atan2(float(pose[1, 0]), float(pose[0, 0]))
+    a, b = _v_coeffs(theta)
+    # V(theta)^-1 = [[a, b], [-b, a]] / (a^2 + b^2), written out as exp_se2 writes V out
+    x, y = float(pose[0, 3]), float(pose[1, 3])
+    d = a * a + b * b
+    return np.array([(a * x + b * y) / d, (a * y - b * x) / d, theta])
 
 
 def adjoint_se2(pose: np.ndarray) -> np.ndarray:

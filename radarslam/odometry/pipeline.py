@@ -64,6 +64,7 @@ from radarslam.odometry.calibration import (
 from radarslam.odometry.config import OdometryConfig
 from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit, TwistBounds
 from radarslam.odometry.lie import adjoint_se2, exp_jacobian_twist, exp_se2, log_se2, planar
+from radarslam.odometry.linalg3 import inv3, solve3
 from radarslam.odometry.registration import RegistrationResult, ScanToMapRegistration
 from radarslam.types import RADAR_CHANNELS, RadarFrame
 
@@ -226,8 +227,8 @@ def along_track_covariance(delta: np.ndarray, fraction: float) -> np.ndarray:
 
 def _fuse_cov(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Covariance of the information-weighted fusion of two independent estimates."""
-    info = np.linalg.inv(a + np.eye(3) * 1e-12) + np.linalg.inv(b + np.eye(3) * 1e-12)
-    out = np.linalg.inv(info)
+    info = inv3(a + np.eye(3) * 1e-12) + inv3(b + np.eye(3) * 1e-12)
+    out = inv3(info)
     return 0.5 * (out + out.T)
 
 
@@ -240,7 +241,7 @@ _YAW_SEARCH_MAX_RAD = np.deg2rad(20.0)
 
 def _chi2(x: np.ndarray, cov: np.ndarray) -> float:
     try:
-        return float(x @ np.linalg.solve(cov, x))
+        return float(x @ solve3(cov, x))
     except np.linalg.LinAlgError:
         return float("inf")
 
@@ -899,7 +900,7 @@ class RadarOdometry:
         innovation = log_se2(invert(predicted) @ reg.world_from_ego)
         s = pred_cov + icp_cov
         try:
-            mahal = float(innovation @ np.linalg.solve(s, innovation))
+            mahal = float(innovation @ solve3(s, innovation))
         except np.linalg.LinAlgError:
             mahal = np.inf
         if not np.isfinite(mahal) or (
@@ -908,7 +909,7 @@ class RadarOdometry:
             self._rejections += 1
             return predicted, pred_cov, False, "rejected"
         self._rejections = 0
-        s_inv = np.linalg.inv(s)
+        s_inv = inv3(s)
         gain = pred_cov @ s_inv
         pose = planar(predicted @ exp_se2(gain @ innovation))
         cov = _sym((np.eye(3) - gain) @ pred_cov)

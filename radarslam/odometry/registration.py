@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from radarslam.odometry.lie import exp_se2, planar
+from radarslam.odometry.linalg3 import inv3, solve3
 
 #: Metric on refinement steps (x, y, yaw): yaw as the arc it sweeps at 10 m.
 _STEP_METRIC = np.array([1.0, 1.0, 100.0])
@@ -180,7 +181,7 @@ class ScanToMapRegistration:
             # J = R [I, perp(p)]: J^T J = [[I, perp], [perp^T, |p|^2]], J^T r = [rb, perp . rb].
             hess = np.array([[sw, 0.0, hxt], [0.0, sw, hyt], [hxt, hyt, htt]])
             grad = np.array([gx, gy, gt])
-            delta = -np.linalg.solve(hess + np.eye(3) * 1e-9, grad)
+            delta = -solve3(hess + np.eye(3) * 1e-9, grad)
             scale = 1.0
             if previous is not None and self.refine_max_extrapolation > 1.0:
                 # Yaw weighted as the arc at 10 m, so that both parts count alike.
@@ -238,5 +239,5 @@ class ScanToMapRegistration:
         # Residual variance, floored at the sensor's point noise: correlated correspondences would
         # otherwise make a handful of lucky matches look arbitrarily precise.
         var = max(mse, self.point_sigma_m**2)
-        cov = np.linalg.inv(hess / var + np.eye(3) * 1e-6)
+        cov = inv3(hess / var + np.eye(3) * 1e-6)
         return 0.5 * (cov + cov.T), m, float(np.sqrt(mse))
