@@ -403,3 +403,29 @@ def test_the_residuals_see_the_rear_units_turned_opposite_ways():
     jac = est.fit_frame(turned).mounting_jacobian
     twist_change = jac[:, bl] - jac[:, br]  # per radian of the opposite turn
     assert np.linalg.norm(twist_change) < 0.1 * np.linalg.norm(jac[:, bl])
+
+
+def test_a_radar_without_a_usable_point_is_left_out_of_the_joint_fit():
+    """A radar whose every point is unusable (NaN Doppler here) takes no part in the fit: the
+    twist, covariance and the other radars' masks and mounting columns are those of the frame
+    without it, and its mask is all False at its own length."""
+    rng = np.random.default_rng(21)
+    frame = make_frame(rng, np.array([8.0, 0.1]), 0.15, n=40, moving_fraction=0.2)
+    dead = "RADAR_FRONT_LEFT"
+    pts = frame.sweeps[dead].points.copy()
+    pts["vx"] = np.nan
+    sweeps = dict(frame.sweeps)
+    sweeps[dead] = dataclasses.replace(frame.sweeps[dead], points=pts)
+    est = DopplerEstimator()
+    with_dead = est.fit_frame(dataclasses.replace(frame, sweeps=sweeps))
+    without = est.fit_frame([sw for ch, sw in frame.sweeps.items() if ch != dead])
+    assert with_dead.valid and without.valid
+    np.testing.assert_array_equal(with_dead.twist, without.twist)
+    np.testing.assert_array_equal(with_dead.covariance, without.covariance)
+    np.testing.assert_array_equal(with_dead.mounting_jacobian, without.mounting_jacobian)
+    assert with_dead.static_masks[dead].shape == (len(pts),)
+    assert not with_dead.static_masks[dead].any()
+    for ch, mask in without.static_masks.items():
+        np.testing.assert_array_equal(with_dead.static_masks[ch], mask)
+        assert mask.shape == (len(frame.sweeps[ch]),)
+    assert with_dead.num_points == without.num_points
