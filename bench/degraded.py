@@ -17,7 +17,10 @@ the real split (each scene its own segment, started on its ground truth):
 * ``only RADAR_FRONT``: every other radar silent (a single forward radar, whose Doppler alone
   cannot observe the yaw rate);
 * ``silent all 1 s``: all five radars empty for 1 s in the middle of each scene (frames still
-  come, with no point: the odometry holds its last motion through them).
+  come, with no point: the odometry holds its last motion through them);
+* ``RADAR_X off 3 deg``: one radar's written extrinsic (``calibrated_sensor.json``) turned by
+  3 deg about its vertical axis, each radar in turn: a unit knocked out of line, which every
+  method reads as the truth (the real split's own mounting errors are about 1 deg).
 
 Per condition: pooled ATE (SE(2)-aligned) of each method, ours against the peer, and the scene
 where ours is worst against the clean run. The real data is read in place and linked, never copied
@@ -45,6 +48,8 @@ METHODS: tuple[str, ...] = odobench.METHODS
 #: Rate of empty sweeps on real nuScenes scenes other than the shared five.
 REAL_EMPTY_RATE = 0.024
 OUTAGE_S = 1.0
+#: Mounting-yaw error of a radar knocked out of line.
+TURN_DEG = 3.0
 
 
 def conditions(channels: list[str]) -> list[tuple[str, dict]]:
@@ -53,6 +58,7 @@ def conditions(channels: list[str]) -> list[tuple[str, dict]]:
     out += [(f"silent {ch}", {"silent": ch}) for ch in channels]
     out += [(f"only {ch}", {"only": ch}) for ch in ("RADAR_FRONT",) if ch in channels]
     out.append((f"silent all {OUTAGE_S:g} s", {"outage_s": OUTAGE_S}))
+    out += [(f"{ch} off {TURN_DEG:g} deg", {"turned": ch}) for ch in channels]
     return out
 
 
@@ -87,9 +93,12 @@ def emptied(sweeps: list[Sweep], spec: dict, rng: np.random.Generator) -> set[st
     return set()
 
 
-def degraded_root(src: Path, dst: Path, empty: set[str]) -> None:
-    """``dst``: ``src`` with the files in ``empty`` replaced by radar files with no point, every
-    other file a link to the original."""
+def degraded_root(
+    src: Path, dst: Path, empty: set[str], turned: str | None = None, version: str = ""
+) -> None:
+    """``dst``: ``src`` with the files in ``empty`` replaced by radar files with no point and, with
+    ``turned``, ``version``/calibrated_sensor.json rewritten with that channel's extrinsics turned
+    by :data:`TURN_DEG`; every other file a link to the original."""
     from radarslam.nuscenes.pcd import pcd_bytes
     from radarslam.types import RADAR_DTYPE
 
@@ -105,6 +114,27 @@ def degraded_root(src: Path, dst: Path, empty: set[str]) -> None:
                 (dst / rel / f).write_bytes(blank)
             else:
                 os.symlink(Path(dirpath, f).resolve(), dst / rel / f)
+    if turned is not None:
+        path = dst / version / "calibrated_sensor.json"
+        records = turned_extrinsics(src / version, turned, TURN_DEG)
+        path.unlink()
+        path.write_text(json.dumps(records))
+
+
+def turned_extrinsics(tables: Path, channel: str, yaw_deg: float) -> list[dict]:
+    """``tables``/calibrated_sensor.json with every record of ``channel``'s sensors turned by
+    ``yaw_deg`` about the sensor's z axis (its rotation right-multiplied by Rz)."""
+    sensors = json.loads((tables / "sensor.json").read_text())
+    tokens = {r["token"] for r in sensors if r["channel"] == channel}
+    records = json.loads((tables / "calibrated_sensor.json").read_text())
+    half = np.deg2rad(yaw_deg) / 2
+    bw, bz = np.cos(half), np.sin(half)
+    for r in records:
+        if r["sensor_token"] in tokens:
+            w, x, y, z = r["rotation"]
+            # q * (cos, 0, 0, sin): the Hamilton product with a turn about z
+            r["rotation"] = [w * bw - z * bz, x * bw + y * bz, y * bw - x * bz, z * bw + w * bz]
+    return records
 
 
 def run_condition(
@@ -120,6 +150,9 @@ def run_condition(
     return {
         "scenes": {s: {m: rows[m]["ate_m"] for m in METHODS} for s, rows in per_scene.items()},
         "pooled": {m: pool_rows[m]["ate_m"] for m in METHODS},
+        "mounting_yaw_error_deg": {
+            r["scenes"][0]: r["calibration"].get("mounting_yaw_error_deg", {}) for r in results
+        },
     }
 
 
@@ -169,12 +202,27 @@ def main() -> int:
         rng = np.random.default_rng(args.seed)
         empty = set().union(*(emptied(sweeps[s], spec, rng) for s in scenes))
         root = args.dataroot
-        if empty:
+        if empty or "turned" in spec:
             root = args.work / f"condition{k}"
-            degraded_root(args.dataroot.resolve(), root, empty)
-        print(f"{name}: {len(empty)} sweeps emptied", flush=True)
+            degraded_root(args.dataroot.resolve(), root, empty, spec.get("turned"), args.version)
+        if "turned" in spec:
+            print(f"{name}: {spec['turned']}'s extrinsic turned", flush=True)
+        else:
+            print(f"{name}: {len(empty)} sweeps emptied", flush=True)
         rows[name] = run_condition(root, args.version, scenes, args.jobs, args.set)
         rows[name]["sweeps_emptied"] = len(empty)
+        if "turned" in spec:
+            ch = spec["turned"]
+            est = [row.get(ch, np.nan) for row in rows[name]["mounting_yaw_error_deg"].values()]
+            clean_est = [
+                row.get(ch, np.nan) for row in rows["clean"]["mounting_yaw_error_deg"].values()
+            ]
+            print(
+                f"  {ch}'s mounting-yaw error as ours estimates it per scene, deg: "
+                + " ".join(f"{e:+.2f}" for e in est)
+                + " (clean: " + " ".join(f"{e:+.2f}" for e in clean_est) + ")",
+                flush=True,
+            )  # fmt: skip
     clean = rows["clean"]["scenes"]
     print(f"\npooled ATE (SE(2)-aligned), m, over {len(scenes)} scenes")
     head = f"{'condition':<26}" + "".join(f"{m:>10}" for m in METHODS)

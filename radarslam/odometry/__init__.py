@@ -19,6 +19,7 @@ _EXPORTS = {
     "write_outputs": "radarslam.odometry.run",
     "PlainKissIcpOdometry": "radarslam.odometry.baselines",
     "make_odometry": "radarslam.odometry.baselines",
+    "load_kernels": "radarslam.odometry.registration",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -448,13 +448,10 @@ class DopplerEstimator:
         masks = {sw.channel: np.zeros(0, dtype=bool) for sw in sweeps}
         for k, mask in zip(filled, np.split(static, np.cumsum(counts_all)[:-1]), strict=True):
             masks[sweeps[k].channel] = mask
-        res = a[inl] @ x - b[inl]
         fitted = [sweeps[filled[j]].channel for j in used]
-        mount = self._mounting_jacobian(a, b, x, inl, radar_of, fitted, levers, lateral)
-        n_ch = len(RADAR_CHANNELS)
-        info, vector = np.zeros((n_ch, n_ch)), np.zeros(n_ch)
-        if mounting_residuals:
-            info, vector = self._mounting_residuals(a, b, x, inl, radar_of, fitted, levers, lateral)
+        res, mount, info, vector = self._mounting(
+            a, b, x, inl, radar_of, fitted, levers, lateral, mounting_residuals
+        )
         if c.speed_scale_error:
             # Every measured v_r is (1 + e) times the model's, and the model is linear in the
             # twist: the fit (and all that derives from it) is (1 + e) times the true twist.
@@ -477,53 +474,47 @@ class DopplerEstimator:
             mounting_information_vector=vector,
         )
 
-    def _mounting_jacobian(self, a, b, x, inl, radar_of, channels, levers, lateral) -> np.ndarray:
-        """(3, 5) derivative of the least-squares twist with respect to each radar's mounting
-        yaw (columns in RADAR_CHANNELS order): turning radar i by d turns its lines of sight u to
-        u + d (-u_y, u_x), which changes its rows of the linear system; the twist moves by
-        (A^T A)^-1 sum_p (da_p r_p - a_p (da_p . x)) over its inliers p."""
-        out = np.zeros((3, len(RADAR_CHANNELS)))
-        if not inl.any() or not np.any(x):
-            return out
-        ai, bi, ri = a[inl], b[inl], radar_of[inl]
-        da = _turned_rows(ai, levers[ri])
-        resid = bi - ai @ x
-        terms = da * resid[:, None] - ai * (da @ x)[:, None]
-        m = inv3(ai.T @ ai + self._prior(lateral) * self.config.noise_floor_mps**2)
-        for k, ch in enumerate(channels):
-            sel = ri == k
-            if sel.any():
-                out[:, RADAR_CHANNELS.index(ch)] = m @ terms[sel].sum(axis=0)
-        return out
+    def _mounting(self, a, b, x, inl, radar_of, channels, levers, lateral, residuals: bool):
+        """What the fit says of each radar's mounting yaw (the inliers' rows and residuals
+        shared): (the inliers' residuals A x - b, the twist's (3, 5) Jacobian, and with
+        ``residuals`` the yaws' (5, 5) information and (5,) vector, else zeros), columns in
+        RADAR_CHANNELS order.
 
-    def _mounting_residuals(
-        self, a, b, x, inl, radar_of, channels, levers, lateral
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Each radar's mounting yaw as its inliers' residuals see it, the twist eliminated:
-        turning radar i by d adds d (da_p . x) to each of its points' predicted radial velocity
-        (:meth:`_mounting_jacobian`), so the residuals r = b - A x regress on the columns
-        D (one per radar) next to A, and the Schur complement of A's block gives the yaws'
-        information D^T D - D^T A (A^T A)^-1 A^T D and vector D^T r - D^T A (A^T A)^-1 A^T r,
-        in units of the residual variance."""
+        Turning radar i by d turns its lines of sight u to u + d (-u_y, u_x), which changes its
+        rows of the linear system by d da_p. The least-squares twist then moves by
+        (A^T A)^-1 sum_p (da_p r_p - a_p (da_p . x)) over its inliers p (the Jacobian). Each
+        point's predicted radial velocity moves by d (da_p . x), so the residuals r = b - A x
+        regress on the columns D (one per radar) next to A, and the Schur complement of A's
+        block gives the yaws' information D^T D - D^T A (A^T A)^-1 A^T D and vector
+        D^T r - D^T A (A^T A)^-1 A^T r, in units of the residual variance."""
         n_ch = len(RADAR_CHANNELS)
-        info, vector = np.zeros((n_ch, n_ch)), np.zeros(n_ch)
-        if not inl.any() or not np.any(x):
-            return info, vector
-        ai, ri = a[inl], radar_of[inl]
-        d = _turned_rows(ai, levers[ri]) @ x
-        r = b[inl] - ai @ x
-        var = max(float(r @ r) / max(len(r) - 3, 1), self.config.noise_floor_mps**2)
+        jac, info, vector = np.zeros((3, n_ch)), np.zeros((n_ch, n_ch)), np.zeros(n_ch)
+        ai, bi = a[inl], b[inl]
+        r = bi - ai @ x
+        if not len(ai) or not np.any(x):
+            return -r, jac, info, vector
+        da = _turned_rows(ai, levers[radar_of[inl]])
+        d = da @ x
+        ata = ai.T @ ai
         # per-radar sums over its points (bincount: one pass, no mask per radar)
-        cols = np.array([RADAR_CHANNELS.index(ch) for ch in channels])[ri]
-        dtd = np.bincount(cols, weights=d * d, minlength=n_ch)
-        dtr = np.bincount(cols, weights=d * r, minlength=n_ch)
-        dta = np.stack(
-            [np.bincount(cols, weights=d * ai[:, j], minlength=n_ch) for j in range(3)], axis=1
+        cols = np.array([RADAR_CHANNELS.index(ch) for ch in channels])[radar_of[inl]]
+        terms = da * r[:, None] - ai * d[:, None]
+        m = inv3(ata + self._prior(lateral) * self.config.noise_floor_mps**2)
+        jac = m @ np.stack(
+            [np.bincount(cols, weights=terms[:, j], minlength=n_ch) for j in range(3)]
         )
-        m = inv3(ai.T @ ai + self._prior(lateral) * var)
-        info = (np.diag(dtd) - dta @ m @ dta.T) / var
-        vector = (dtr - dta @ m @ (ai.T @ r)) / var
-        return 0.5 * (info + info.T), vector
+        if residuals:
+            var = max(float(r @ r) / max(len(r) - 3, 1), self.config.noise_floor_mps**2)
+            dtd = np.bincount(cols, weights=d * d, minlength=n_ch)
+            dtr = np.bincount(cols, weights=d * r, minlength=n_ch)
+            dta = np.stack(
+                [np.bincount(cols, weights=d * ai[:, j], minlength=n_ch) for j in range(3)], axis=1
+            )
+            m = inv3(ata + self._prior(lateral) * var)
+            info = (np.diag(dtd) - dta @ m @ dta.T) / var
+            info = 0.5 * (info + info.T)
+            vector = (dtr - dta @ m @ (ai.T @ r)) / var
+        return -r, jac, info, vector
 
     def _invalid_frame(
         self, sizes: Mapping[str, int], channels: tuple[str, ...], num_points: int

@@ -525,29 +525,39 @@ class RadarOdometry:
         Each sweep's timestamp and ``ego_from_sensor`` are checked as in :meth:`check_frame` (a
         set lookup once a calibration was seen), so a bad one cannot make non-finite points."""
         pc = self.config.points
-        chunks = []
+        # All radars' points in one set of arrays, each point with its sweep's transform: one
+        # numpy call per step instead of one per step and radar.
+        sweeps, rots, trans = [], [], []
         for ch, sweep in frame.sweeps.items():
-            n = len(sweep)
-            if n == 0:
+            if len(sweep) == 0:
                 continue
             self._check_sweep(frame, ch, sweep)
-            xy = sweep.xy
-            rng = np.hypot(xy[:, 0], xy[:, 1])
-            keep = np.isfinite(rng) & (rng >= pc.min_range_m) & (rng <= pc.max_range_m)
-            if pc.dynamic_free and fit.valid:
-                keep &= fit.static_masks.get(ch, np.zeros(n, dtype=bool))
-            if not keep.any():
-                continue
             ego_from_sensor = sweep.ego_from_sensor
             if pc.deskew:
                 dt_s = (sweep.timestamp_us - frame.timestamp_us) * 1e-6
                 ego_from_sensor = exp_se2(twist * dt_s) @ ego_from_sensor
-            pts = xy[keep] @ ego_from_sensor[:2, :2].T + ego_from_sensor[:2, 3]
-            chunks.append(pts)
-        if not chunks:
+            sweeps.append((ch, sweep))
+            rots.append(ego_from_sensor[:2, :2])
+            trans.append(ego_from_sensor[:2, 3])
+        if not sweeps:
             return np.zeros((0, 3))
-        xy = np.concatenate(chunks)
-        return np.column_stack([xy, np.zeros(len(xy))])
+        x, y = (
+            np.concatenate([sw.points[name] for _, sw in sweeps]).astype(np.float64)
+            for name in ("x", "y")
+        )
+        rng = np.hypot(x, y)
+        keep = np.isfinite(rng) & (rng >= pc.min_range_m) & (rng <= pc.max_range_m)
+        if pc.dynamic_free and fit.valid:
+            keep &= np.concatenate(
+                [fit.static_masks.get(ch, np.zeros(len(sw), dtype=bool)) for ch, sw in sweeps]
+            )
+        of = np.repeat(np.arange(len(sweeps)), [len(sw) for _, sw in sweeps])[keep]
+        rot, t = np.array(rots)[of], np.array(trans)[of]
+        x, y = x[keep], y[keep]
+        out = np.zeros((len(x), 3))
+        out[:, 0] = x * rot[:, 0, 0] + y * rot[:, 0, 1] + t[:, 0]
+        out[:, 1] = x * rot[:, 1, 0] + y * rot[:, 1, 1] + t[:, 1]
+        return out
 
     # --- main step ----------------------------------------------------------------------------
 

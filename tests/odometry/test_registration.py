@@ -216,3 +216,30 @@ def test_yaw_search_finds_a_scan_turned_beyond_the_registrations_reach():
     # A search of zero width is the plain alignment.
     same = reg.align_over_yaw(source, np.eye(4), 0.0, np.deg2rad(1.5))
     np.testing.assert_array_equal(same.world_from_ego, plain.world_from_ego)
+
+
+def test_load_kernels_compiles_what_the_registration_runs():
+    """In a fresh process, after load_kernels() an alignment with its refinement and
+    covariance adds no kernel signature: the first frame finds everything loaded."""
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from radarslam import grid_kernels
+from radarslam.odometry import registration_kernels as rk
+from radarslam.odometry.registration import ScanToMapRegistration
+kernels = (grid_kernels.bounds, grid_kernels.build, grid_kernels.query, rk.refine_sums,
+           rk.covariance_sums)
+load_kernels()
+before = [len(k.signatures) for k in kernels]
+reg = ScanToMapRegistration(voxel_size_m=1.0, max_range_m=100.0, max_points_per_voxel=20,
+    max_num_iterations=5, convergence_criterion=1e-4, fixed_sigma_m=0.7, point_sigma_m=0.3,
+    line_neighbors=5, mirror_every=5, refine_iterations=3)
+pts = np.random.default_rng(0).uniform(-30, 30, (300, 3)); pts[:, 2] = 0
+reg.update(pts, np.eye(4))
+reg.align(reg.voxelize(pts)[0], np.eye(4))
+after = [len(k.signatures) for k in kernels]
+assert all(before) and before == after, (before, after)
+"""
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
