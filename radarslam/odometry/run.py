@@ -295,10 +295,14 @@ def single_pass(config: OdometryConfig, mounting_yaw_deg: dict[str, float]) -> O
 
 def second_pass(config: OdometryConfig, first_calibration: dict | None) -> OdometryConfig:
     """The self-calibration pass's config: the mounting yaws given in ``config`` plus those the
-    first pass estimated (its ``calibration.as_dict()``), applied from the first frame."""
+    first pass estimated (its ``calibration.as_dict()``), applied from the first frame; with
+    ``calibration.common_yaw: median`` the estimate's median is taken out first."""
     given = dict(config.mounting_yaw_deg)
     estimated = (first_calibration or {}).get("mounting_yaw_error_deg", {})
-    applied = {ch: given.get(ch, 0.0) + estimated.get(ch, 0.0) for ch in RADAR_CHANNELS}
+    shift = 0.0
+    if estimated and config.fusion.calibration.common_yaw == "median":
+        shift = float(np.median([estimated.get(ch, 0.0) for ch in RADAR_CHANNELS]))
+    applied = {ch: given.get(ch, 0.0) + estimated.get(ch, 0.0) - shift for ch in RADAR_CHANNELS}
     return single_pass(config, applied)
 
 

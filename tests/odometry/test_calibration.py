@@ -79,3 +79,27 @@ def test_the_mounting_calibration_is_reported_per_radar_in_degrees():
         "yaw_bias_model",
         "radar_speed_scale_error",
     }
+
+
+def test_second_pass_applies_the_estimate_with_its_median_out_on_top_of_the_given_yaws():
+    """No radar measurement observes a turn all radars share: the pass's estimate of a single
+    knocked unit is applied as that unit's turn against the others (common_yaw: median), on
+    top of what the config gives; "filter" applies it as estimated."""
+    from radarslam.odometry.config import OdometryConfig
+    from radarslam.odometry.run import second_pass
+
+    estimate = {"RADAR_FRONT": -1.3, "RADAR_FRONT_LEFT": 1.1, "RADAR_FRONT_RIGHT": 1.0,
+                "RADAR_BACK_LEFT": 1.2, "RADAR_BACK_RIGHT": 0.9}  # fmt: skip
+    given = {"RADAR_BACK_LEFT": 0.5}
+    cfg = OdometryConfig.model_validate({"mounting_yaw_deg": given})
+    applied = second_pass(cfg, {"mounting_yaw_error_deg": estimate}).mounting_yaw_deg
+    expected = {"RADAR_FRONT": -2.3, "RADAR_FRONT_LEFT": 0.1, "RADAR_FRONT_RIGHT": 0.0,
+                "RADAR_BACK_LEFT": 0.7, "RADAR_BACK_RIGHT": -0.1}  # fmt: skip
+    assert applied == pytest.approx(expected, abs=1e-12)
+    zero = dict.fromkeys(estimate, 0.0)
+    assert second_pass(cfg, None).mounting_yaw_deg == pytest.approx({**zero, **given})
+    raw = OdometryConfig.model_validate(
+        {"mounting_yaw_deg": given, "fusion": {"calibration": {"common_yaw": "filter"}}}
+    )
+    applied = second_pass(raw, {"mounting_yaw_error_deg": estimate}).mounting_yaw_deg
+    assert applied == pytest.approx({**estimate, "RADAR_BACK_LEFT": 1.7}, abs=1e-12)

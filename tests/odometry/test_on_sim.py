@@ -143,7 +143,13 @@ def test_self_calibration_pass_applies_the_first_pass_estimate(tiny_dataroot):
     two = run_odometry(reader, [scene], cfg, progress=False)
     assert two.calibration["passes"] == 2 and "passes" not in one.calibration
     applied = second_pass(cfg, one.calibration).mounting_yaw_deg
-    assert applied == one.calibration["mounting_yaw_error_deg"]
+    estimate = one.calibration["mounting_yaw_error_deg"]
+    median = float(np.median(list(estimate.values())))  # common_yaw: median
+    assert applied == pytest.approx({ch: v - median for ch, v in estimate.items()}, abs=1e-12)
+    filter_cfg = OdometryConfig.model_validate(
+        {"fusion": {"calibration": {"common_yaw": "filter"}}}
+    )
+    assert second_pass(filter_cfg, one.calibration).mounting_yaw_deg == estimate
     assert two.calibration["mounting_yaw_error_deg"] != applied  # plus the second's residual
     assert len(two.processing_ms) == len(one.processing_ms)
     a1 = ate(one.poses, one.ground_truth).rmse_m

@@ -228,7 +228,7 @@ def test_load_kernels_compiles_what_the_registration_runs():
 import numpy as np
 from radarslam import grid_kernels
 from radarslam.odometry import registration_kernels as rk
-from radarslam.odometry.registration import ScanToMapRegistration
+from radarslam.odometry.registration import ScanToMapRegistration, load_kernels
 kernels = (grid_kernels.bounds, grid_kernels.build, grid_kernels.query, rk.refine_sums,
            rk.covariance_sums)
 load_kernels()
