@@ -148,9 +148,9 @@ class CalibrationConfig(StrictModel):
     passes: int = Field(2, ge=1, le=2)
     #: The first pass runs on every k-th frame only: the calibration needs the drive's turns
     #: and speeds, not every frame. Real pooled ATE (Doppler seed 0) with strides 1 / 2 / 3 / 4
-    #: / 6 / 8 / 10: 0.107 / 0.107 / 0.109 / 0.104 / 0.107 / 0.113 / 0.226 m (at 10 the pass's
+    #: / 6 / 8 / 10: 0.111 / 0.111 / 0.111 / 0.106 / 0.109 / 0.107 / 0.216 m (at 10 the pass's
     #: frames are 0.75 s apart and scene-0916's turns lose the registration); with
-    #: RADAR_BACK_LEFT silent (bench/degraded.py) 4 put scene-0061 at 0.239 m, 1-3 at 0.066-0.071.
+    #: RADAR_BACK_LEFT silent (bench/degraded.py) 4 put scene-0061 at 0.242 m, 3 at 0.069 m.
     pass_frame_stride: int = Field(3, ge=1, le=8)
     #: At every reset (a new scene or segment, each SLAM session) the mounting yaws estimated so
     #: far for the rig are applied to its later sweeps, as ``mounting_yaw_deg`` does, and the
