@@ -181,7 +181,8 @@ class CalibrationConfig(StrictModel):
     #: applied with its median taken out, i.e. most units sit where the nominal extrinsics put
     #: them and one or two are off (with RADAR_FRONT 3 deg off NEES 4.6 and RPE per 10 m
     #: 0.140 m instead of 13.8 and 0.270 m; the clean split's median ATE over 5 Doppler seeds
-    #: 0.109 m either way). "filter": the estimate as the filter leaves it.
+    #: 0.109 m either way). "filter": the estimate as the filter leaves it (SLAM's preset:
+    #: docs/results.md, settings table).
     common_yaw: Literal["median", "filter"] = "median"
 
 
