@@ -123,17 +123,19 @@ def degraded_root(
 
 def turned_extrinsics(tables: Path, channel: str, yaw_deg: float) -> list[dict]:
     """``tables``/calibrated_sensor.json with every record of ``channel``'s sensors turned by
-    ``yaw_deg`` about the sensor's z axis (its rotation right-multiplied by Rz)."""
+    ``yaw_deg`` about the sensor's z axis, as a mounting error turns it
+    (:func:`~radarslam.odometry.calibration.mounting_rotations`: ``mounting_yaw_deg`` undoes it)."""
+    from radarslam.geometry import quat_to_rotation, rotation_to_quat
+    from radarslam.odometry.calibration import mounting_rotations
+
     sensors = json.loads((tables / "sensor.json").read_text())
     tokens = {r["token"] for r in sensors if r["channel"] == channel}
     records = json.loads((tables / "calibrated_sensor.json").read_text())
-    half = np.deg2rad(yaw_deg) / 2
-    bw, bz = np.cos(half), np.sin(half)
+    turn = mounting_rotations({channel: yaw_deg})[channel][:3, :3]
     for r in records:
         if r["sensor_token"] in tokens:
-            w, x, y, z = r["rotation"]
-            # q * (cos, 0, 0, sin): the Hamilton product with a turn about z
-            r["rotation"] = [w * bw - z * bz, x * bw + y * bz, y * bw - x * bz, z * bw + w * bz]
+            turned = quat_to_rotation(r["rotation"]) @ turn
+            r["rotation"] = [float(v) for v in rotation_to_quat(turned)]
     return records
 
 

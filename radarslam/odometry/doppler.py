@@ -448,8 +448,9 @@ class DopplerEstimator:
         masks = {sw.channel: np.zeros(0, dtype=bool) for sw in sweeps}
         for k, mask in zip(filled, np.split(static, np.cumsum(counts_all)[:-1]), strict=True):
             masks[sweeps[k].channel] = mask
+        res = a[inl] @ x - b[inl]
         fitted = [sweeps[filled[j]].channel for j in used]
-        res, mount, info, vector = self._mounting(
+        mount, info, vector = self._mounting(
             a, b, x, inl, radar_of, fitted, levers, lateral, mounting_residuals
         )
         if c.speed_scale_error:
@@ -475,10 +476,9 @@ class DopplerEstimator:
         )
 
     def _mounting(self, a, b, x, inl, radar_of, channels, levers, lateral, residuals: bool):
-        """What the fit says of each radar's mounting yaw (the inliers' rows and residuals
-        shared): (the inliers' residuals A x - b, the twist's (3, 5) Jacobian, and with
-        ``residuals`` the yaws' (5, 5) information and (5,) vector, else zeros), columns in
-        RADAR_CHANNELS order.
+        """What the fit says of each radar's mounting yaw, the inliers' rows and residuals
+        shared: the twist's (3, 5) Jacobian and, with ``residuals``, the yaws' (5, 5)
+        information and (5,) vector (else zeros), columns in RADAR_CHANNELS order.
 
         Turning radar i by d turns its lines of sight u to u + d (-u_y, u_x), which changes its
         rows of the linear system by d da_p. The least-squares twist then moves by
@@ -489,15 +489,15 @@ class DopplerEstimator:
         D^T r - D^T A (A^T A)^-1 A^T r, in units of the residual variance."""
         n_ch = len(RADAR_CHANNELS)
         jac, info, vector = np.zeros((3, n_ch)), np.zeros((n_ch, n_ch)), np.zeros(n_ch)
-        ai, bi = a[inl], b[inl]
-        r = bi - ai @ x
-        if not len(ai) or not np.any(x):
-            return -r, jac, info, vector
-        da = _turned_rows(ai, levers[radar_of[inl]])
+        if not inl.any() or not np.any(x):
+            return jac, info, vector
+        ai, ri = a[inl], radar_of[inl]
+        r = b[inl] - ai @ x
+        da = _turned_rows(ai, levers[ri])
         d = da @ x
         ata = ai.T @ ai
         # per-radar sums over its points (bincount: one pass, no mask per radar)
-        cols = np.array([RADAR_CHANNELS.index(ch) for ch in channels])[radar_of[inl]]
+        cols = np.array([RADAR_CHANNELS.index(ch) for ch in channels])[ri]
         terms = da * r[:, None] - ai * d[:, None]
         m = inv3(ata + self._prior(lateral) * self.config.noise_floor_mps**2)
         jac = m @ np.stack(
@@ -514,7 +514,7 @@ class DopplerEstimator:
             info = (np.diag(dtd) - dta @ m @ dta.T) / var
             info = 0.5 * (info + info.T)
             vector = (dtr - dta @ m @ (ai.T @ r)) / var
-        return -r, jac, info, vector
+        return jac, info, vector
 
     def _invalid_frame(
         self, sizes: Mapping[str, int], channels: tuple[str, ...], num_points: int
