@@ -152,17 +152,14 @@ def run_slam(
             f"{len(result.continues)} scene(s) continue the scene before them (same log, "
             f"back to back): {drives} drive(s)"
         )
-    calibration = result.doppler_calibration or {}
-    mounting = calibration.get("mounting_yaw_error_deg")
-    if mounting:
-        sigma = calibration.get("mounting_yaw_sigma_deg", {})
-        console.print(
-            "estimated radar mounting-yaw errors (deg): "
-            + ", ".join(
-                f"{ch.removeprefix('RADAR_')} {deg:+.2f} +- {sigma.get(ch, float('nan')):.2f}"
-                for ch, deg in mounting.items()
-            )
-        )
+    from radarslam.odometry.commands import calibration_line
+
+    # One line per radar rig (a run over two cars' scenes estimates two calibrations), with the
+    # scenes it was estimated on, as `radarslam odometry` prints them.
+    for cal in result.doppler_calibrations_by_rig or [result.doppler_calibration]:
+        line = calibration_line(cal)
+        if line:
+            console.print(line, soft_wrap=True)
     reports = []
     finish = None
     if evaluate:

@@ -32,7 +32,7 @@ def test_run_odometry_only_writes_and_evaluates_a_results_folder(tiny_dataroot, 
     assert set(cal["mounting_yaw_error_deg"]) == set(cal["mounting_yaw_sigma_deg"])
     assert len(cal["mounting_yaw_error_deg"]) == 5
     assert all(0 < s < 1.0 for s in cal["mounting_yaw_sigma_deg"].values())
-    assert "estimated radar mounting-yaw errors (deg): FRONT" in result.output
+    assert "mounting yaw error (deg) FRONT " in result.output
 
 
 def test_run_over_a_drive_cut_into_scenes_reports_one_drive(sim_dataroot, tmp_path):
