@@ -65,6 +65,13 @@ class GridIndex:
     def __len__(self) -> int:
         return self.n
 
+    @property
+    def kernel_arguments(self) -> tuple:
+        """The sorted points and grid geometry every kernel of :mod:`radarslam.grid_kernels`
+        takes first (``sx, sy, order, starts, x0, y0, cell, nx, ny``): for compiled code that
+        queries the index itself."""
+        return self._grid
+
     def query(
         self,
         points_xy: np.ndarray,

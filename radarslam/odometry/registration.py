@@ -1,15 +1,18 @@
-"""Scan-to-map registration with kiss-icp's own C++ registration and voxel-hash local map.
+"""Scan-to-map registration against kiss-icp's voxel-hash local map.
 
-We call kiss-icp's building blocks directly (``Registration.align_points_to_map``,
-``VoxelHashMap``, ``AdaptiveThreshold``, ``voxel_down_sample``) instead of its ``KissICP`` pipeline,
-so that the initial guess is the Doppler-predicted pose rather than kiss-icp's constant-velocity
-extrapolation, and so that frames with too few points skip registration instead of feeding the
-extrapolation (which, after many empty frames, de-orthogonalises the rotation until Sophus
-aborts the process). Every pose handed to kiss-icp is an exact SE(2)
+We call kiss-icp's building blocks directly (``VoxelHashMap``, ``voxel_down_sample``,
+``Registration.align_points_to_map``) instead of its ``KissICP`` pipeline, so that the initial
+guess is the Doppler-predicted pose rather than kiss-icp's constant-velocity extrapolation, and
+so that frames with too few points skip registration instead of feeding the extrapolation
+(which, after many empty frames, de-orthogonalises the rotation until Sophus aborts the
+process). Every pose handed to kiss-icp is an exact SE(2)
 pose built here, and its output is projected back onto SE(2).
 
-kiss-icp's few iterations are followed by a Gauss-Newton refinement on point-to-local-mean
-residuals (``refine_iterations``; why in :meth:`ScanToMapRegistration._refine`).
+The alignment is a Gauss-Newton refinement on point-to-local-mean residuals
+(``refine_iterations``; why in :meth:`ScanToMapRegistration._refine`), after kiss-icp's
+point-to-point iterations (``point_to_point="always"``) or from the seed, with kiss-icp's
+iterations only where the refinement cannot start (``"fallback"``, the odometry's default: from
+a Doppler seed within centimetres kiss-icp's steps add nothing on real radar).
 
 kiss-icp reports no uncertainty, so the covariance of an alignment is computed here from the
 point-to-line Hessian at the solution (Censi-style ``sigma^2 H^-1``): each source point's nearest
@@ -22,12 +25,14 @@ correspondences is an exact nearest-neighbour grid of kiss-icp's map (~20k point
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from radarslam.geometry import se2_to_matrix
 from radarslam.odometry.lie import exp_se2, planar
-from radarslam.odometry.linalg3 import inv3, solve3
+from radarslam.odometry.linalg3 import inv3
 
 #: Metric on refinement steps (x, y, yaw): yaw as the arc it sweeps at 10 m.
 _STEP_METRIC = np.array([1.0, 1.0, 100.0])
@@ -53,20 +58,22 @@ def load_kernels() -> None:
     import importlib
 
     from radarslam.neighbors import GridIndex
-    from radarslam.odometry.registration_kernels import covariance_sums, refine_sums
+    from radarslam.odometry.registration_kernels import covariance_sums, refine_pose
 
     for module in ("kiss_icp.mapping", "kiss_icp.registration", "kiss_icp.voxelization"):
         importlib.import_module(module)
     cloud = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
     pts = cloud[:2] + 0.1
-    dist, idx = GridIndex(cloud).query(pts, 3, 2.0, nearest_within=2.0)
-    rot = np.eye(2)
-    refine_sums(pts, pts, dist, idx, cloud, 2.0, 1.0, rot)
-    covariance_sums(pts, pts, dist, idx, cloud, 2.0, rot)
+    grid = GridIndex(cloud)
+    dist, idx = grid.query(pts, 3, 2.0, nearest_within=2.0)
+    refine_pose(
+        *grid.kernel_arguments, grid.n, cloud, pts, 0.0, 0.0, 0.0, 3, 2.0, 1.0, 1, 8.0, _STEP_METRIC
+    )
+    covariance_sums(pts, pts, dist, idx, cloud, 2.0, np.eye(2))
 
 
 class ScanToMapRegistration:
-    """kiss-icp registration of ego-frame points (z = 0) to a world-frame voxel-hash map."""
+    """Registration of ego-frame points (z = 0) to a world-frame kiss-icp voxel-hash map."""
 
     def __init__(
         self,
@@ -82,6 +89,7 @@ class ScanToMapRegistration:
         mirror_every: int,
         refine_iterations: int = 0,
         refine_max_extrapolation: float = 1.0,
+        point_to_point: str = "always",
     ):
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
@@ -94,6 +102,11 @@ class ScanToMapRegistration:
         self.mirror_every = mirror_every
         self.refine_iterations = refine_iterations
         self.refine_max_extrapolation = refine_max_extrapolation
+        if point_to_point not in ("always", "fallback"):
+            raise ValueError(
+                f"point_to_point must be 'always' or 'fallback', got {point_to_point!r}"
+            )
+        self.point_to_point = point_to_point
         self.map = VoxelHashMap(voxel_size_m, max_range_m, max_points_per_voxel)
         # One thread: deterministic, and the machines this runs on are shared.
         self.registration = Registration(max_num_iterations, convergence_criterion, 1)
@@ -117,17 +130,21 @@ class ScanToMapRegistration:
 
     def align(self, source: np.ndarray, initial_guess: np.ndarray) -> RegistrationResult:
         sigma = self.sigma()
-        guess = planar(initial_guess)
-        pose = self.registration.align_points_to_map(
-            points=source,
-            voxel_map=self.map,
-            initial_guess=guess,
-            max_correspondance_distance=3.0 * sigma,
-            kernel=sigma,
-        )
-        pose = planar(np.asarray(pose, dtype=np.float64))
-        if self.refine_iterations:
-            pose = self._refine(source, pose, 3.0 * sigma, sigma)
+        pose = planar(initial_guess)
+        refined = False
+        if self.point_to_point == "fallback" and self.refine_iterations:
+            pose, refined = self._refine(source, pose, 3.0 * sigma, sigma)
+        if not refined:
+            pose = self.registration.align_points_to_map(
+                points=source,
+                voxel_map=self.map,
+                initial_guess=pose,
+                max_correspondance_distance=3.0 * sigma,
+                kernel=sigma,
+            )
+            pose = planar(np.asarray(pose, dtype=np.float64))
+            if self.refine_iterations:
+                pose, _ = self._refine(source, pose, 3.0 * sigma, sigma)
         cov, matched, rms = self._covariance(source, pose, 3.0 * sigma)
         return RegistrationResult(pose, cov, len(source), matched, rms, sigma)
 
@@ -158,8 +175,11 @@ class ScanToMapRegistration:
 
     # --- refinement ---------------------------------------------------------------------------
 
-    def _refine(self, source: np.ndarray, pose: np.ndarray, max_dist: float, sigma: float):
-        """Gauss-Newton on point-to-local-mean residuals, from kiss-icp's solution.
+    def _refine(
+        self, source: np.ndarray, pose: np.ndarray, max_dist: float, sigma: float
+    ) -> tuple[np.ndarray, bool]:
+        """Gauss-Newton on point-to-local-mean residuals from ``pose`` (the seed, or kiss-icp's
+        solution): (refined pose, whether a step was taken).
 
         kiss-icp matches each point to the single nearest map point. Radar maps are clouds of
         noisy returns around each reflector (up to 20 per voxel), so a slightly rotated scan still
@@ -178,45 +198,37 @@ class ScanToMapRegistration:
         Only points with all ``line_neighbors`` map points inside the correspondence distance
         take part: at the edge of the map (far ahead, a newly
         seen object) the neighbours lie on the side the vehicle came from, and their mean would
-        pull the scan back along the track.
+        pull the scan back along the track. With fewer than 3 such points no step is taken
+        (a young or sparse map; ``point_to_point="fallback"`` then runs kiss-icp).
         """
         mirror = self._mirror_tree()
         k = self.line_neighbors
-        if mirror is None or len(mirror[1]) < k or len(source) < 3:
-            return pose
+        if mirror is None or len(mirror[1]) < k or len(source) < 3 or not self.refine_iterations:
+            return pose, False
         tree, cloud = mirror
-        from radarslam.odometry.registration_kernels import refine_sums
+        from radarslam.odometry.registration_kernels import refine_pose
 
-        pb = np.ascontiguousarray(source[:, :2])
-        s2 = sigma**2
-        previous = None
-        for _ in range(self.refine_iterations):
-            rot, t = pose[:2, :2], pose[:2, 3]
-            pw = pb @ rot.T + t
-            # Bounded query: much cheaper than plain k-NN where the map is sparse.
-            dist, idx = tree.query(pw, k, max_dist)
-            used, sw, hxt, hyt, htt, gx, gy, gt = refine_sums(
-                pb, pw, dist, idx, cloud, max_dist, s2, np.ascontiguousarray(rot)
-            )
-            if used < 3:
-                return pose
-            # J = R [I, perp(p)]: J^T J = [[I, perp], [perp^T, |p|^2]], J^T r = [rb, perp . rb].
-            hess = np.array([[sw, 0.0, hxt], [0.0, sw, hyt], [hxt, hyt, htt]])
-            grad = np.array([gx, gy, gt])
-            delta = -solve3(hess + np.eye(3) * 1e-9, grad)
-            scale = 1.0
-            if previous is not None and self.refine_max_extrapolation > 1.0:
-                # Yaw weighted as the arc at 10 m, so that both parts count alike.
-                wp = previous * _STEP_METRIC
-                denom = float(wp @ previous)
-                rho = float(wp @ delta) / denom if denom > 0 else 0.0
-                if 0.0 < rho < 1.0:
-                    scale = min(1.0 / (1.0 - rho), self.refine_max_extrapolation)
-            pose = planar(pose @ exp_se2(scale * delta))
-            previous = delta
-            if np.abs(delta).max() < 1e-4:  # 0.1 mm, 0.006 deg
-                break
-        return pose
+        # The steps run compiled (registration_kernels.refine_pose): per step the bounded k-NN
+        # query, the weighted sums, the 3x3 solve with a 1e-9 damping, the extrapolation and the
+        # SE(2) update; it stops once a step is below 0.1 mm and 0.006 deg.
+        x, y, yaw, steps = refine_pose(
+            *tree.kernel_arguments,
+            tree.n,
+            cloud,
+            np.ascontiguousarray(source[:, :2], dtype=np.float64),
+            float(pose[0, 3]),
+            float(pose[1, 3]),
+            math.atan2(pose[1, 0], pose[0, 0]),
+            k,
+            float(max_dist),
+            float(sigma) ** 2,
+            self.refine_iterations,
+            float(self.refine_max_extrapolation),
+            _STEP_METRIC,
+        )
+        if not steps:
+            return pose, False
+        return se2_to_matrix(x, y, yaw), True
 
     # --- covariance ---------------------------------------------------------------------------
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from radarslam.odometry.doppler import DopplerEstimator
-from radarslam.odometry.lie import exp_se2
+from radarslam.odometry.lie import exp_se2, planar
 from radarslam.odometry.registration import ScanToMapRegistration
 
 
@@ -36,7 +36,9 @@ def _reference_covariance(cloud, source, pose, max_dist, k, point_sigma):
     return np.linalg.inv(jac.T @ jac / var + np.eye(3) * 1e-6), int(ok.sum())
 
 
-def _registration(cloud, max_num_iterations=50, refine=0, extrapolation=1.0):
+def _registration(
+    cloud, max_num_iterations=50, refine=0, extrapolation=1.0, point_to_point="always"
+):
     reg = ScanToMapRegistration(
         voxel_size_m=1.0,
         max_range_m=100.0,
@@ -49,6 +51,7 @@ def _registration(cloud, max_num_iterations=50, refine=0, extrapolation=1.0):
         mirror_every=1,
         refine_iterations=refine,
         refine_max_extrapolation=extrapolation,
+        point_to_point=point_to_point,
     )
     if len(cloud):
         reg.update(np.column_stack([cloud, np.zeros(len(cloud))]), np.eye(4))
@@ -119,16 +122,22 @@ def _radar_scan(reflectors, rng, azimuth_sigma_deg=0.4, range_sigma_m=0.15):
 def test_refinement_pulls_yaw_into_noisy_reflector_clouds():
     """kiss-icp's nearest-point cost is nearly flat inside the clouds of noisy radar returns
     around each reflector: from a 1 deg yaw error it stops short (even with 100 iterations). The
-    point-to-local-mean refinement (after 5 kiss-icp iterations) goes about half the rest."""
-    errors = {"kiss-icp": [], "refined": []}
+    point-to-local-mean refinement (after 5 kiss-icp iterations) goes about half the rest, and
+    on its own from the seed (the odometry's default: 8 steps, kiss-icp only as a fallback)
+    as far."""
+    errors = {"kiss-icp": [], "refined": [], "refinement alone": []}
     for seed in range(4):
         rng = np.random.default_rng(seed)
         refl = rng.uniform(-60, 60, (100, 2))
         refl = refl[np.linalg.norm(refl, axis=1) > 5]
         scans = [_radar_scan(refl, rng) for _ in range(16)]
         guess = exp_se2(np.array([0.1, -0.1, np.deg2rad(1.0)]))
-        for name, iterations, refine in (("kiss-icp", 100, 0), ("refined", 5, 5)):
-            reg = _registration(np.zeros((0, 2)), max_num_iterations=iterations, refine=refine)
+        for name, iterations, refine, point_to_point in (
+            ("kiss-icp", 100, 0, "always"),
+            ("refined", 5, 5, "always"),
+            ("refinement alone", 5, 8, "fallback"),
+        ):
+            reg = _registration(np.zeros((0, 2)), iterations, refine, point_to_point=point_to_point)
             for pts in scans[:-1]:  # the map: 15 noisy scans of the same reflectors
                 reg.update(np.column_stack([pts, np.zeros(len(pts))]), np.eye(4))
             source, _ = reg.voxelize(np.column_stack([scans[-1], np.zeros(len(refl))]))
@@ -136,6 +145,7 @@ def test_refinement_pulls_yaw_into_noisy_reflector_clouds():
             errors[name].append(abs(np.rad2deg(np.arctan2(pose[1, 0], pose[0, 0]))))
     kiss, refined = np.mean(errors["kiss-icp"]), np.mean(errors["refined"])
     assert refined < 0.08 and refined < 0.6 * kiss, errors
+    assert np.mean(errors["refinement alone"]) < 0.08, errors
 
 
 def test_extrapolated_refinement_gets_nearer_the_fixed_point_per_search():
@@ -184,12 +194,14 @@ def test_refinement_ignores_points_at_the_edge_of_the_map():
     scan = np.column_stack([_radar_scan(refl, rng), np.zeros(len(refl))])
     with_edge = np.concatenate([scan, np.column_stack([edge_scan, np.zeros(12)])])
     start = exp_se2(np.array([0.02, -0.01, np.deg2rad(0.05)]))
-    inside = reg._refine(scan, start, 2.1, 0.7)
-    both = reg._refine(with_edge, start, 2.1, 0.7)
+    inside, stepped = reg._refine(scan, start, 2.1, 0.7)
+    both, _ = reg._refine(with_edge, start, 2.1, 0.7)
+    assert stepped
     np.testing.assert_array_equal(both, inside)
 
 
-def test_yaw_search_finds_a_scan_turned_beyond_the_registrations_reach():
+@pytest.mark.parametrize("refine, point_to_point", [(3, "always"), (8, "fallback")])
+def test_yaw_search_finds_a_scan_turned_beyond_the_registrations_reach(refine, point_to_point):
     # Scattered reflectors (posts, corners) around the vehicle; the scan is the map seen from a
     # pose 9 deg and 0.3 m off the seed, as after an outage whose held yaw rate overturned.
     rng = np.random.default_rng(7)
@@ -200,7 +212,7 @@ def test_yaw_search_finds_a_scan_turned_beyond_the_registrations_reach():
     scan = scan[np.hypot(*scan.T) < 50.0]
     scan = scan + rng.normal(0, 0.05, scan.shape)
     source = np.column_stack([scan, np.zeros(len(scan))])
-    reg = _registration(cloud, max_num_iterations=5, refine=3, extrapolation=8.0)
+    reg = _registration(cloud, 5, refine, 8.0, point_to_point)
 
     def yaw_deg(result):
         return float(
@@ -229,13 +241,14 @@ import numpy as np
 from radarslam import grid_kernels
 from radarslam.odometry import registration_kernels as rk
 from radarslam.odometry.registration import ScanToMapRegistration, load_kernels
-kernels = (grid_kernels.bounds, grid_kernels.build, grid_kernels.query, rk.refine_sums,
+kernels = (grid_kernels.bounds, grid_kernels.build, grid_kernels.query, rk.refine_pose,
            rk.covariance_sums)
 load_kernels()
 before = [len(k.signatures) for k in kernels]
 reg = ScanToMapRegistration(voxel_size_m=1.0, max_range_m=100.0, max_points_per_voxel=20,
     max_num_iterations=5, convergence_criterion=1e-4, fixed_sigma_m=0.7, point_sigma_m=0.3,
-    line_neighbors=5, mirror_every=5, refine_iterations=3)
+    line_neighbors=5, mirror_every=5, refine_iterations=8, refine_max_extrapolation=8.0,
+    point_to_point="fallback")
 pts = np.random.default_rng(0).uniform(-30, 30, (300, 3)); pts[:, 2] = 0
 reg.update(pts, np.eye(4))
 reg.align(reg.voxelize(pts)[0], np.eye(4))
@@ -243,3 +256,89 @@ after = [len(k.signatures) for k in kernels]
 assert all(before) and before == after, (before, after)
 """
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
+
+
+def test_fallback_runs_kiss_icp_only_where_the_refinement_cannot_start():
+    """``point_to_point="fallback"``: against a map of single scattered points no scan point
+    has five map neighbours within reach, so kiss-icp aligns the scan (as "always" does);
+    against clouds of radar returns the refinement alone aligns it, and kiss-icp's alignment is
+    not called."""
+    rng = np.random.default_rng(5)
+    posts = rng.uniform(-50, 50, (300, 2))
+    posts = posts[np.hypot(*posts.T) > 4.0]
+    truth = exp_se2(np.array([0.4, -0.3, np.deg2rad(0.5)]))
+    scan = (posts - truth[:2, 3]) @ truth[:2, :2]
+    source = np.column_stack([scan, np.zeros(len(scan))])
+    sparse = {mode: _registration(posts, 5, 8, 8.0, mode) for mode in ("always", "fallback")}
+    poses = {mode: reg.align(source, np.eye(4)).world_from_ego for mode, reg in sparse.items()}
+    np.testing.assert_array_equal(poses["fallback"], poses["always"])
+    np.testing.assert_allclose(poses["fallback"][:2, 3], truth[:2, 3], atol=0.02)
+
+    class NoKiss:
+        def align_points_to_map(self, **kwargs):
+            raise AssertionError("kiss-icp's alignment ran")
+
+    refl = rng.uniform(-60, 60, (100, 2))
+    refl = refl[np.hypot(*refl.T) > 5]
+    reg = _registration(np.zeros((0, 2)), 5, 8, 8.0, "fallback")
+    for _ in range(15):
+        pts = _radar_scan(refl, rng)
+        reg.update(np.column_stack([pts, np.zeros(len(pts))]), np.eye(4))
+    reg.registration = NoKiss()
+    guess = exp_se2(np.array([0.1, -0.1, np.deg2rad(0.5)]))
+    pose = reg.align(np.column_stack([_radar_scan(refl, rng), np.zeros(len(refl))]), guess)
+    assert abs(np.degrees(np.arctan2(pose.world_from_ego[1, 0], pose.world_from_ego[0, 0]))) < 0.1
+    np.testing.assert_allclose(pose.world_from_ego[:2, 3], 0.0, atol=0.05)
+
+
+def _refine_in_numpy(reg, source, pose, max_dist, sigma):
+    """The refinement's steps written with numpy (what registration_kernels.refine_pose runs)."""
+    from radarslam.odometry.linalg3 import solve3
+    from radarslam.odometry.registration import _STEP_METRIC
+    from radarslam.odometry.registration_kernels import refine_sums
+
+    tree, cloud = reg._mirror_tree()
+    pb = np.ascontiguousarray(source[:, :2])
+    previous = None
+    for _ in range(reg.refine_iterations):
+        rot, t = pose[:2, :2], pose[:2, 3]
+        pw = pb @ rot.T + t
+        dist, idx = tree.query(pw, reg.line_neighbors, max_dist)
+        used, sw, hxt, hyt, htt, gx, gy, gt = refine_sums(
+            pb, pw, dist, idx, cloud, max_dist, sigma**2, np.ascontiguousarray(rot)
+        )
+        if used < 3:
+            return pose, previous is not None
+        hess = np.array([[sw, 0.0, hxt], [0.0, sw, hyt], [hxt, hyt, htt]])
+        delta = -solve3(hess + np.eye(3) * 1e-9, np.array([gx, gy, gt]))
+        scale = 1.0
+        if previous is not None:
+            rho = float(previous * _STEP_METRIC @ delta) / float(previous * _STEP_METRIC @ previous)
+            if 0.0 < rho < 1.0:
+                scale = min(1.0 / (1.0 - rho), reg.refine_max_extrapolation)
+        pose = planar(pose @ exp_se2(scale * delta))
+        previous = delta
+        if np.abs(delta).max() < 1e-4:
+            break
+    return pose, True
+
+
+def test_compiled_refinement_takes_the_documented_steps():
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        refl = rng.uniform(-60, 60, (100, 2))
+        refl = refl[np.hypot(*refl.T) > 5]
+        reg = _registration(np.zeros((0, 2)), 5, 8, 8.0, "fallback")
+        for _ in range(15):
+            pts = _radar_scan(refl, rng)
+            reg.update(np.column_stack([pts, np.zeros(len(pts))]), np.eye(4))
+        source = np.column_stack([_radar_scan(refl, rng), np.zeros(len(refl))])
+        seed_pose = exp_se2(np.array([*rng.normal(0, 0.2, 2), np.deg2rad(rng.normal(0, 1))]))
+        got, stepped = reg._refine(source, seed_pose, 2.1, 0.7)
+        want, want_stepped = _refine_in_numpy(reg, source, seed_pose, 2.1, 0.7)
+        assert stepped == want_stepped
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    # No step (a map too sparse for any complete neighbourhood): the pose comes back as is.
+    reg = _registration(np.array([[0.0, 0.0], [30.0, 0.0]] * 3), 5, 8, 8.0, "fallback")
+    pose, stepped = reg._refine(source, seed_pose, 2.1, 0.7)
+    assert not stepped and pose is seed_pose
