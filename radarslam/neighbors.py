@@ -66,7 +66,9 @@ class GridIndex:
         return self.n
 
     @property
-    def kernel_arguments(self) -> tuple:
+    def kernel_arguments(
+        self,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float, float, int, int]:
         """The sorted points and grid geometry every kernel of :mod:`radarslam.grid_kernels`
         takes first (``sx, sy, order, starts, x0, y0, cell, nx, ny``): for compiled code that
         queries the index itself."""

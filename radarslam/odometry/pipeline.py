@@ -11,10 +11,10 @@ Per frame (the five radars' sweeps nearest in time, :class:`~radarslam.types.Rad
 3. **Prediction**: the motion since the previous frame is the Doppler twist (trapezoid of the two
    frames' twists) integrated on SE(2); its covariance is the twists' covariances propagated
    through the SE(2) exponential plus a random-walk process noise.
-4. **Registration**: the points are aligned to kiss-icp's voxel-hash local map by Gauss-Newton on
-   point-to-local-mean residuals (after kiss-icp's own point-to-point iterations, where
-   configured), seeded with the predicted pose turned at the previous frame's fused yaw rate
-   (the Doppler's translation, kiss-icp's constant-velocity rotation). Its covariance is the
+4. **Registration**: kiss-icp's own registration aligns the points to kiss-icp's voxel-hash local
+   map, seeded with the predicted pose turned at the previous frame's fused yaw rate (the
+   Doppler's translation, kiss-icp's constant-velocity rotation), then a point-to-local-mean
+   Gauss-Newton refinement finishes the alignment. Its covariance is the
    point-to-line Hessian at the solution (:mod:`.registration`).
 5. **Fusion** (choice documented in docs/odometry.md): an error-state Kalman filter on SE(2).
    The Doppler motion is the filter's *input* (prediction), the registration is a *measurement of

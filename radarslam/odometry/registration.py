@@ -8,11 +8,11 @@ so that frames with too few points skip registration instead of feeding the extr
 process). Every pose handed to kiss-icp is an exact SE(2)
 pose built here, and its output is projected back onto SE(2).
 
-The alignment is a Gauss-Newton refinement on point-to-local-mean residuals
-(``refine_iterations``; why in :meth:`ScanToMapRegistration._refine`), after kiss-icp's
-point-to-point iterations (``point_to_point="always"``) or from the seed, with kiss-icp's
-iterations only where the refinement cannot start (``"fallback"``, the odometry's default: from
-a Doppler seed within centimetres kiss-icp's steps add nothing on real radar).
+kiss-icp's few point-to-point iterations are followed by a Gauss-Newton refinement on
+point-to-local-mean residuals (``refine_iterations``; why in
+:meth:`ScanToMapRegistration._refine`). With ``point_to_point="fallback"`` the refinement starts
+from the seed itself and kiss-icp runs only where the refinement cannot start (a young or
+sparse map).
 
 kiss-icp reports no uncertainty, so the covariance of an alignment is computed here from the
 point-to-line Hessian at the solution (Censi-style ``sigma^2 H^-1``): each source point's nearest
@@ -27,12 +27,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from radarslam.geometry import se2_to_matrix
 from radarslam.odometry.lie import exp_se2, planar
 from radarslam.odometry.linalg3 import inv3
+
+if TYPE_CHECKING:
+    from radarslam.neighbors import GridIndex
 
 #: Metric on refinement steps (x, y, yaw): yaw as the arc it sweeps at 10 m.
 _STEP_METRIC = np.array([1.0, 1.0, 100.0])
@@ -110,7 +114,7 @@ class ScanToMapRegistration:
         self.map = VoxelHashMap(voxel_size_m, max_range_m, max_points_per_voxel)
         # One thread: deterministic, and the machines this runs on are shared.
         self.registration = Registration(max_num_iterations, convergence_criterion, 1)
-        self._mirror = None
+        self._mirror: tuple[GridIndex, np.ndarray] | None = None
         self._mirror_age = 0
 
     @property
@@ -232,7 +236,7 @@ class ScanToMapRegistration:
 
     # --- covariance ---------------------------------------------------------------------------
 
-    def _mirror_tree(self):
+    def _mirror_tree(self) -> tuple[GridIndex, np.ndarray] | None:
         if self._mirror is None or self._mirror_age >= self.mirror_every:
             from radarslam.neighbors import GridIndex
 

@@ -156,7 +156,7 @@ def run_slam(
 
     # One line per radar rig (a run over two cars' scenes estimates two calibrations), with the
     # scenes it was estimated on, as `radarslam odometry` prints them.
-    for cal in result.doppler_calibrations_by_rig or [result.doppler_calibration]:
+    for cal in result.doppler_calibrations_by_rig or [result.doppler_calibration or {}]:
         line = calibration_line(cal)
         if line:
             console.print(line, soft_wrap=True)
