@@ -62,11 +62,12 @@ class RegistrationConfig(StrictModel):
     #: "fallback", only where the refinement cannot start (fewer than 3 scan points at the seed
     #: have all their ``line_neighbors`` map points within reach: a map's first frames, sparse
     #: surroundings), elsewhere the refinement alone from the Doppler seed (with
-    #: ``refine_iterations: 8``). Measured, fallback against always (bench/odometry.py, AMD
-    #: EPYC): 11 % less CPU per frame; real median pooled ATE over 5 Doppler seeds 0.109 m
+    #: ``refine_iterations: 8``). Measured, fallback against always (bench/odometry.py):
+    #: 10 % fewer instructions (callgrind); real median pooled ATE over 5 Doppler seeds 0.109 m
     #: both; scene-0916's Doppler heading refitted with the estimated mounting yaws 6.0 deg off
-    #: in 19.9 s, past the 0.3 deg/s bound (always: 5.9); synthetic subset / long drive 0.254 /
-    #: 0.384 m against 0.249 / 0.346 m.
+    #: in 19.9 s, past the 0.3 deg/s bound (always: 5.9); synthetic subset / long drive 0.252 /
+    #: 0.331 m against 0.249 / 0.346 m; a run's poses move by up to 2 cm with the last bits of
+    #: its input (always: none on the same test, test_odometry_pipeline's mounting given back).
     point_to_point: Literal["always", "fallback"] = "always"
     #: kiss-icp's iterations: they bring the seeded scan onto the right reflectors; the
     #: point-to-local-mean refinement below does the fine alignment.
