@@ -1,6 +1,6 @@
 """The refinement and the covariance's per-point sums, compiled by numba.
 
-Both run a few hundred points through a dozen small numpy operations up to nine times per
+Both run a few hundred points through a dozen small numpy operations several times per
 frame; numpy's per-call overhead, not the arithmetic, made up most of their time. The
 covariance kernel returns the sums that :mod:`.registration` turns into a covariance, so the
 maths stays readable there; the refinement runs whole here (:func:`refine_pose`), its steps
@@ -133,8 +133,8 @@ def refine_pose(
     """The whole refinement (ScanToMapRegistration._refine) on planar ``(x, y, yaw)``: per step
     the bounded k-NN query of the map mirror's grid (``grid_*`` .. ``n_points``, as
     :class:`~radarslam.neighbors.GridIndex` holds them), :func:`refine_sums`, the damped 3x3
-    Gauss-Newton solve in closed form, Aitken's extrapolation and the SE(2) update. Up to eight
-    steps per frame each paid about 40 us of Python and numpy around the two kernels.
+    Gauss-Newton solve in closed form, Aitken's extrapolation and the SE(2) update. Written as
+    numpy around the two kernels, each step paid about 40 us of Python.
 
     Returns (x, y, yaw, steps taken); no step where fewer than 3 points qualify (or the normal
     equations are singular), so the caller keeps its pose bit for bit."""
@@ -162,6 +162,7 @@ def refine_pose(
         )
         if used < 3:
             break
+        # J = R [I, perp(p)]: J^T J = [[I, perp], [perp^T, |p|^2]], J^T r = [rb, perp . rb], so
         # H = [[sw, 0, hxt], [0, sw, hyt], [hxt, hyt, htt]] + 1e-9 I; delta = -H^-1 g (cofactors)
         a = sw + 1e-9
         e = htt + 1e-9
@@ -179,6 +180,7 @@ def refine_pose(
         dt = -(c02 * gx + c12 * gy + c22 * gt) / det
         scale = 1.0
         if steps > 0 and max_extrapolation > 1.0:
+            # Yaw weighted as the arc at 10 m (metric), so that both parts count alike.
             wx, wy, wt = px * metric[0], py * metric[1], pt * metric[2]
             denom = wx * px + wy * py + wt * pt
             rho = (wx * dx + wy * dy + wt * dt) / denom if denom > 0 else 0.0
