@@ -258,6 +258,18 @@ assert all(before) and before == after, (before, after)
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
 
 
+def _reflector_map(rng):
+    """Reflectors scattered around the origin, and a fallback registration (8 refinement steps)
+    whose map holds 15 noisy radar scans of them seen from the origin."""
+    refl = rng.uniform(-60, 60, (100, 2))
+    refl = refl[np.hypot(*refl.T) > 5]
+    reg = _registration(np.zeros((0, 2)), 5, 8, 8.0, "fallback")
+    for _ in range(15):
+        pts = _radar_scan(refl, rng)
+        reg.update(np.column_stack([pts, np.zeros(len(pts))]), np.eye(4))
+    return refl, reg
+
+
 def test_fallback_runs_kiss_icp_only_where_the_refinement_cannot_start():
     """``point_to_point="fallback"``: against a map of single scattered points no scan point
     has five map neighbours within reach, so kiss-icp aligns the scan (as "always" does);
@@ -278,12 +290,7 @@ def test_fallback_runs_kiss_icp_only_where_the_refinement_cannot_start():
         def align_points_to_map(self, **kwargs):
             raise AssertionError("kiss-icp's alignment ran")
 
-    refl = rng.uniform(-60, 60, (100, 2))
-    refl = refl[np.hypot(*refl.T) > 5]
-    reg = _registration(np.zeros((0, 2)), 5, 8, 8.0, "fallback")
-    for _ in range(15):
-        pts = _radar_scan(refl, rng)
-        reg.update(np.column_stack([pts, np.zeros(len(pts))]), np.eye(4))
+    refl, reg = _reflector_map(rng)
     reg.registration = NoKiss()
     guess = exp_se2(np.array([0.1, -0.1, np.deg2rad(0.5)]))
     pose = reg.align(np.column_stack([_radar_scan(refl, rng), np.zeros(len(refl))]), guess)
@@ -326,12 +333,7 @@ def _refine_in_numpy(reg, source, pose, max_dist, sigma):
 def test_compiled_refinement_takes_the_documented_steps():
     for seed in range(8):
         rng = np.random.default_rng(seed)
-        refl = rng.uniform(-60, 60, (100, 2))
-        refl = refl[np.hypot(*refl.T) > 5]
-        reg = _registration(np.zeros((0, 2)), 5, 8, 8.0, "fallback")
-        for _ in range(15):
-            pts = _radar_scan(refl, rng)
-            reg.update(np.column_stack([pts, np.zeros(len(pts))]), np.eye(4))
+        refl, reg = _reflector_map(rng)
         source = np.column_stack([_radar_scan(refl, rng), np.zeros(len(refl))])
         seed_pose = exp_se2(np.array([*rng.normal(0, 0.2, 2), np.deg2rad(rng.normal(0, 1))]))
         got, stepped = reg._refine(source, seed_pose, 2.1, 0.7)
