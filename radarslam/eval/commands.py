@@ -63,6 +63,16 @@ def print_report(report, results_dir: Path, cfg) -> None:
             ],
         ),
         (
+            "ATE along / across the ground truth's heading, and at the clock offset that fits "
+            "best (estimate early: +)",
+            [
+                ("along m", "ate_along_m", 3),
+                ("across m", "ate_cross_m", 3),
+                ("clock offset ms", "clock_offset_ms", 0),
+                ("ATE m there", "ate_at_clock_offset_m", 3),
+            ],
+        ),
+        (
             "relative pose error (RMSE)",
             [
                 (f"RPE {cfg.rpe_time_s:g}s m", "rpe_time_trans_rmse_m", 3),

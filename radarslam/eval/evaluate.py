@@ -21,7 +21,15 @@ from pydantic import Field, field_validator
 from radarslam.config import StrictModel
 from radarslam.errors import DataError
 from radarslam.eval.loops import LoopEvalConfig, LoopMetrics, SessionGroundTruth, evaluate_loops
-from radarslam.eval.metrics import align_se2, ate, drift, path_lengths_m, rpe, to_xy_yaw
+from radarslam.eval.metrics import (
+    align_se2,
+    ate,
+    ate_clock_offsets,
+    drift,
+    path_lengths_m,
+    rpe,
+    to_xy_yaw,
+)
 from radarslam.geometry import invert
 from radarslam.io.atomic import write_json_atomic
 from radarslam.io.loops import read_loops_csv_numbered
@@ -37,6 +45,9 @@ class EvalConfig(StrictModel):
     rpe_distance_m: float = Field(10.0, gt=0)
     drift_segment_lengths_m: tuple[float, ...] = (50.0, 100.0)
     max_time_diff_us: int = Field(10_000, ge=0)  # association of estimate and ground truth
+    # The ground truth's clock is also read shifted by up to this (5 ms steps; 0: not at all)
+    # to report the offset against the estimate's stamps that fits best, and the ATE there.
+    clock_offset_max_ms: float = Field(100.0, ge=0, le=1000)
     loops: LoopEvalConfig = LoopEvalConfig()
     plots: bool = True
 
@@ -55,6 +66,8 @@ class TrajectoryMetrics:
     num_poses: int
     path_length_m: float
     ate_rmse_m: float  # SE(2)-aligned
+    ate_along_m: float  # its share along the ground truth's heading (RMS)
+    ate_cross_m: float  # and across it
     ate_max_m: float
     ate_first_rmse_m: float  # unaligned: first poses made to coincide
     ate_final_first_m: float  # last-pose error with first-pose alignment (open-loop drift)
@@ -64,6 +77,10 @@ class TrajectoryMetrics:
     rpe_dist_rot_rmse_deg: float
     drift_pct: float
     drift_deg_per_100m: float
+    # The ground truth's clock shifted by the offset that fits best (estimate stamps early: +):
+    # the SE(2)-aligned ATE there. NaN when not searched or too short.
+    clock_offset_ms: float = float("nan")
+    ate_at_clock_offset_m: float = float("nan")
 
     def as_dict(self) -> dict:
         return {k: _clean(v) for k, v in self.__dict__.items()}
@@ -131,9 +148,20 @@ def associate(
 
 
 def trajectory_metrics(
-    est: np.ndarray, ref: np.ndarray, t_us: np.ndarray, cfg: EvalConfig
+    est: np.ndarray,
+    ref: np.ndarray,
+    t_us: np.ndarray,
+    cfg: EvalConfig,
+    ref_track: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[TrajectoryMetrics, np.ndarray]:
+    """Metrics of ``est`` against ``ref`` (associated pose by pose, stamps ``t_us``);
+    ``ref_track`` (stamps, poses): the whole ground truth, for the clock-offset search."""
     a = ate(est, ref, align="se2")
+    clock = None
+    if ref_track is not None and cfg.clock_offset_max_ms > 0:
+        clock = ate_clock_offsets(
+            est, t_us, ref_track[1], ref_track[0], cfg.clock_offset_max_ms * 1e-3, 0.005
+        )
     f = ate(est, ref, align="first")
     r_t = rpe(est, ref, t_us, delta=cfg.rpe_time_s, unit="s")
     r_d = rpe(est, ref, t_us, delta=cfg.rpe_distance_m, unit="m")
@@ -142,6 +170,8 @@ def trajectory_metrics(
         num_poses=len(est),
         path_length_m=float(path_lengths_m(to_xy_yaw(ref))[-1]),
         ate_rmse_m=a.rmse_m,
+        ate_along_m=a.along_rmse_m,
+        ate_cross_m=a.cross_rmse_m,
         ate_max_m=a.max_m,
         ate_first_rmse_m=f.rmse_m,
         ate_final_first_m=float(f.errors_m[-1]),
@@ -152,6 +182,9 @@ def trajectory_metrics(
         drift_pct=dr.translation_pct,
         drift_deg_per_100m=dr.rotation_deg_per_100m,
     )
+    if clock is not None:
+        m.clock_offset_ms = 1e3 * clock.best_offset_s
+        m.ate_at_clock_offset_m = clock.best_rmse_m
     return m, a.errors_m
 
 
@@ -192,7 +225,7 @@ def evaluate_results(
                     f"ground truth in time (within {cfg.max_time_diff_us} us); need at least 2"
                 )
             e, r, t = est_p[i_e], gt_p[i_g], est_t[i_e]
-            m, errs = trajectory_metrics(e, r, t, cfg)
+            m, errs = trajectory_metrics(e, r, t, cfg, (gt_t, gt_p))
             per_session[s][kind] = m
             errors_t[s][kind] = ((t - t[0]) / 1e6, errs)
             pooled[kind]["ate"].append(errs)

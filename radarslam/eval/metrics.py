@@ -209,10 +209,29 @@ class AteResult:
     yaw_errors_deg: np.ndarray = field(repr=False)  # (N,) signed heading error
     alignment: Alignment2D = field(repr=False, default=IDENTITY_ALIGNMENT)
     align: str = "se2"
+    # (N,) the position error in each reference pose's own frame: along its heading (+ ahead)
+    # and across it (+ to its left). A clock offset or a speed-scale error shows along the
+    # track, a heading error across it.
+    along_errors_m: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    cross_errors_m: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
 
     @property
     def count(self) -> int:
         return int(self.errors_m.size)
+
+    @property
+    def along_rmse_m(self) -> float:
+        """RMS of the error along the reference's heading (its share of :attr:`rmse_m`)."""
+        return _rms(self.along_errors_m)
+
+    @property
+    def cross_rmse_m(self) -> float:
+        """RMS of the error across the reference's heading."""
+        return _rms(self.cross_errors_m)
+
+
+def _rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(a * a))) if a.size else float("nan")
 
 
 def ate(est_poses, ref_poses, align: AlignMode = "se2") -> AteResult:
@@ -232,8 +251,10 @@ def ate(est_poses, ref_poses, align: AlignMode = "se2") -> AteResult:
     else:
         raise DataError(f"ATE: unknown alignment {align!r} (expected se2, first or none)")
     aligned = al.apply(e)
-    errors = np.linalg.norm(aligned[:, :2] - r[:, :2], axis=1)
+    diff = aligned[:, :2] - r[:, :2]
+    errors = np.linalg.norm(diff, axis=1)
     yaw_err = np.rad2deg(_wrap(aligned[:, 2] - r[:, 2]))
+    c, s = np.cos(r[:, 2]), np.sin(r[:, 2])
     st = ErrorStats.of(errors)
     return AteResult(
         rmse_m=st.rmse,
@@ -246,7 +267,80 @@ def ate(est_poses, ref_poses, align: AlignMode = "se2") -> AteResult:
         yaw_errors_deg=yaw_err,
         alignment=al,
         align=align,
+        along_errors_m=c * diff[:, 0] + s * diff[:, 1],
+        cross_errors_m=c * diff[:, 1] - s * diff[:, 0],
     )
+
+
+@dataclass(frozen=True)
+class ClockOffsetResult:
+    """SE(2)-aligned ATE of an estimate against its reference read with its clock shifted.
+
+    ``rmse_m[k]`` compares the estimate at its stamp t with the reference at t + ``offsets_s[k]``
+    over the same ``count`` poses at every shift: a positive best offset means the estimate's
+    stamps run early against the reference's clock. Radar alone cannot observe such an offset,
+    so this tells how much of an ATE the two clocks make, not an error of the estimate."""
+
+    offsets_s: np.ndarray  # (K,) the shifts tried, increasing, 0 among them
+    rmse_m: np.ndarray  # (K,) ATE at each shift
+    count: int  # poses compared at every shift
+
+    @property
+    def best_offset_s(self) -> float:
+        return float(self.offsets_s[int(np.argmin(self.rmse_m))])
+
+    @property
+    def best_rmse_m(self) -> float:
+        return float(np.min(self.rmse_m))
+
+    @property
+    def rmse_at_zero_m(self) -> float:
+        """ATE over the compared poses with the clocks as stamped."""
+        return float(self.rmse_m[int(np.argmin(np.abs(self.offsets_s)))])
+
+
+def ate_clock_offsets(
+    est_poses,
+    est_timestamps_us,
+    ref_poses,
+    ref_timestamps_us,
+    max_offset_s: float = 0.1,
+    step_s: float = 0.005,
+) -> ClockOffsetResult | None:
+    """ATE (SE(2)-aligned) of the estimate against the reference interpolated (position and
+    unwrapped yaw, linearly) at the estimate's stamps shifted by every multiple of ``step_s``
+    within +-``max_offset_s``. Only poses whose every shifted time the reference covers are
+    compared, so all shifts see the same poses; ``None`` when fewer than 2 remain.
+
+    The reference's stamps must be strictly increasing; the estimate's may repeat."""
+    if not (np.isfinite(max_offset_s) and np.isfinite(step_s)) or step_s <= 0 or max_offset_s < 0:
+        raise DataError(
+            f"clock offsets: need max_offset_s >= 0 and step_s > 0, got {max_offset_s!r} and "
+            f"{step_s!r}"
+        )
+    e = to_xy_yaw(est_poses, "estimate")
+    r = to_xy_yaw(ref_poses, "reference")
+    te = check_timestamps_us(est_timestamps_us, len(e), "estimate", strictly_increasing=False)
+    tr = check_timestamps_us(ref_timestamps_us, len(r), "reference")
+    if len(r) < 2:
+        return None
+    k = int(np.floor(max_offset_s / step_s + 1e-9))
+    offsets = np.arange(-k, k + 1) * step_s
+    t = (te - tr[0]) * 1e-6  # seconds from the reference's first stamp, exact in float64
+    tref = (tr - tr[0]) * 1e-6
+    inside = (t + offsets[0] >= tref[0]) & (t + offsets[-1] <= tref[-1])
+    if np.count_nonzero(inside) < 2:
+        return None
+    e, t = e[inside], t[inside]
+    yaw = np.unwrap(r[:, 2])
+    rmse = np.empty(len(offsets))
+    for i, o in enumerate(offsets):
+        shifted = np.column_stack(
+            [np.interp(t + o, tref, r[:, 0]), np.interp(t + o, tref, r[:, 1]),
+             np.interp(t + o, tref, yaw)]
+        )  # fmt: skip
+        rmse[i] = ate(e, shifted, align="se2").rmse_m
+    return ClockOffsetResult(offsets, rmse, len(e))
 
 
 # --- relative pose error -----------------------------------------------------------------------

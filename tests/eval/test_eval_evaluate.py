@@ -184,3 +184,31 @@ def test_slam_joint_ate_covers_the_anchored_map_only(tmp_path):
             json.dumps({"sessions": ["a", "b"], "components": [["c"]]})
         )
         evaluate_results(tmp_path, EvalConfig(plots=False))
+
+
+def test_eval_reports_the_ate_split_and_the_clock_offset_of_the_ground_truth(tmp_path):
+    ts = 1_600_000_000_000_000 + np.arange(0, 10_000_000, 50_000, dtype=np.int64)
+
+    def drive(t_s):  # accelerating through a gentle left turn
+        x = 2.0 * t_s + 0.4 * t_s**2
+        return np.stack([se2_to_matrix(x, 0.01 * x**2, 0.02 * x) for x in x])
+
+    t_s = (ts - ts[0]) * 1e-6
+    gt = drive(t_s)
+    odometry = drive(t_s + 0.04)  # every pose 40 ms ahead of its stamp
+    write_results(tmp_path, [SessionResult("scene-a", ts, gt.copy(), odometry, gt)])
+    report = evaluate_results(tmp_path, EvalConfig(plots=False))
+    m = report.per_session["scene-a"]["odometry"]
+    a = ate(odometry, gt)
+    assert m.ate_along_m == pytest.approx(a.along_rmse_m)
+    assert m.ate_cross_m == pytest.approx(a.cross_rmse_m)
+    assert m.ate_along_m > 2 * m.ate_cross_m  # a clock offset shows mostly along the track
+    assert m.clock_offset_ms == pytest.approx(40.0)
+    assert m.ate_at_clock_offset_m < 0.05 * m.ate_rmse_m
+    exact = report.per_session["scene-a"]["slam"]
+    assert exact.clock_offset_ms == 0.0
+    assert exact.ate_at_clock_offset_m == pytest.approx(0.0, abs=1e-9)
+    data = json.loads((tmp_path / "metrics.json").read_text())["per_session"]["scene-a"]
+    assert data["odometry"]["clock_offset_ms"] == pytest.approx(40.0)
+    off = evaluate_results(tmp_path, EvalConfig(plots=False, clock_offset_max_ms=0), write=False)
+    assert off.per_session["scene-a"]["odometry"].as_dict()["clock_offset_ms"] is None

@@ -5,7 +5,15 @@ import numpy as np
 import pytest
 
 from radarslam.errors import DataError
-from radarslam.eval.metrics import align_se2, ate, drift, pairs_for_delta, rpe, se2_between
+from radarslam.eval.metrics import (
+    align_se2,
+    ate,
+    ate_clock_offsets,
+    drift,
+    pairs_for_delta,
+    rpe,
+    se2_between,
+)
 from radarslam.geometry import se2_to_matrix
 
 
@@ -276,3 +284,57 @@ def test_rotation_blocks_beyond_rounding_are_refused(damage, match):
     bad[5, :3, :3] = damage(bad[5, :3, :3])
     with pytest.raises(DataError, match=match):
         ate(bad, ref)
+
+
+def test_ate_split_along_and_across_the_reference_heading():
+    ref = _circle(n=120)
+    rng = np.random.default_rng(3)
+    along, across = rng.normal(0.2, 0.05, len(ref)), rng.normal(-0.1, 0.02, len(ref))
+    c, s = np.cos(ref[:, 2]), np.sin(ref[:, 2])
+    est = ref.copy()
+    est[:, 0] += c * along - s * across
+    est[:, 1] += s * along + c * across
+    res = ate(est, ref, align="none")
+    np.testing.assert_allclose(res.along_errors_m, along, atol=1e-12)
+    np.testing.assert_allclose(res.cross_errors_m, across, atol=1e-12)
+    assert res.along_rmse_m**2 + res.cross_rmse_m**2 == pytest.approx(res.rmse_m**2)
+    # on a trajectory with one heading, alignment takes out the constant part of either
+    straight = np.column_stack([np.arange(50.0), np.zeros(50), np.zeros(50)])
+    ahead = straight + np.array([0.3, 0.0, 0.0])
+    assert ate(ahead, straight).along_rmse_m < 1e-9
+    assert ate(ahead, straight, align="none").along_rmse_m == pytest.approx(0.3)
+
+
+def _braking(t_s):
+    """x(t) of a car braking from 8 m/s at 1 m/s^2, then standing, heading turning slowly."""
+    v0, a = 8.0, 1.0
+    x = np.where(t_s < v0 / a, v0 * t_s - 0.5 * a * t_s**2, v0**2 / (2 * a))
+    return np.column_stack([x, 0.004 * x**2, 0.01 * x])
+
+
+def test_clock_offset_of_an_estimate_stamped_early_is_found():
+    t_us = 1_700_000_000_000_000 + np.arange(0, 12_000_000, 75_000, dtype=np.int64)
+    t_s = (t_us - t_us[0]) * 1e-6
+    ref = _braking(t_s)
+    est = _braking(t_s + 0.035)  # the car 35 ms after each stamp
+    res = ate_clock_offsets(est, t_us, ref, t_us, max_offset_s=0.1, step_s=0.005)
+    assert res.best_offset_s == pytest.approx(0.035)
+    assert res.best_rmse_m < 2e-3  # the reference interpolated linearly between 75 ms poses
+    assert res.rmse_at_zero_m > 0.05
+    assert len(res.offsets_s) == 41 and res.offsets_s[20] == 0.0
+    # the poses whose shifted time the reference does not cover are left out at every shift
+    assert res.count == len(t_us) - 4
+    late = ate_clock_offsets(_braking(t_s - 0.06), t_us, ref, t_us)
+    assert late.best_offset_s == pytest.approx(-0.06)
+
+
+def test_clock_offsets_arguments():
+    t = np.arange(3, dtype=np.int64) * 100_000
+    ref = _braking(t * 1e-6)
+    assert ate_clock_offsets(ref, t, ref, t, max_offset_s=0.15) is None  # nothing left to compare
+    with pytest.raises(DataError, match="step_s > 0"):
+        ate_clock_offsets(ref, t, ref, t, step_s=0.0)
+    with pytest.raises(DataError, match="reference: timestamp"):
+        ate_clock_offsets(ref, t, ref, t * 1e-6)
+    with pytest.raises(DataError, match="strictly increasing"):
+        ate_clock_offsets(ref, t, ref, t[::-1])
