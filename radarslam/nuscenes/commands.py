@@ -150,6 +150,18 @@ _ROWS: tuple[tuple[str, str, str, str], ...] = (
     ("rcs_p50", "RCS p50 (dBsm)", "points.rcs_dbsm.p50", "dB"),
     ("rcs_p90", "RCS p90 (dBsm)", "points.rcs_dbsm.p90", "dB"),
     ("moving", "points the Doppler fit marks moving", "points.moving_fraction", "%"),
+    (
+        "doppler_residual_p50",
+        "Doppler residual against the frame's fit, p50 (m/s)",
+        "points.doppler_residual_mps.p50",
+        "3",
+    ),
+    (
+        "doppler_residual_p75",
+        "Doppler residual against the frame's fit, p75 (m/s)",
+        "points.doppler_residual_mps.p75",
+        "3",
+    ),
 )
 
 #: Per-radar rows: (key, label, path of a {channel: value} dict, kind).

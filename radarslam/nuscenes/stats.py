@@ -17,6 +17,9 @@ group of figures):
   following sweeps of the same radar with the dataset's ground-truth ego poses and calibration;
   it is re-detected when a filtered point of that sweep lies within ``radius_m`` (in the sensor's
   xy plane). "next" counts points that have a next sweep, "within 3" points that have three.
+* Doppler residual: each point's radial velocity minus what a static point there would read
+  under its frame's fit (:meth:`DopplerEstimator.radial_residuals`), over frames with a valid
+  fit: its spread is the radar's Doppler noise.
 * Doppler drive: per scene, the fit's yaw rate and speed (the last valid fit held over invalid
   ones, 0 before the first) integrated over the frames (trapezoid rule) against the ground-truth
   heading change and path length at the same frames.
@@ -52,6 +55,9 @@ class SweepRecord:
     static: np.ndarray  # (N,) bool: inlier of a valid joint Doppler fit
     fitted: bool  # the sweep's frame had a valid fit (False also for a sweep in no frame)
     world_from_sensor: np.ndarray  # 4x4, ground truth
+    # (N,) measured radial velocity minus the frame fit's prediction for a static point there
+    # (DopplerEstimator.radial_residuals); NaN without a valid fit. None: not recorded.
+    doppler_residual_mps: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -98,7 +104,13 @@ def filter_text(point_filter: RadarPointFilter) -> str:
     return ", ".join(parts) or "no filter"
 
 
-def _record(sweep: RadarSweep, raw_count: int, static: np.ndarray, fitted: bool) -> SweepRecord:
+def _record(
+    sweep: RadarSweep,
+    raw_count: int,
+    static: np.ndarray,
+    fitted: bool,
+    residual: np.ndarray | None = None,
+) -> SweepRecord:
     p = sweep.points
     xyz = np.column_stack([p["x"], p["y"], p["z"]]).astype(np.float64)
     return SweepRecord(
@@ -110,6 +122,7 @@ def _record(sweep: RadarSweep, raw_count: int, static: np.ndarray, fitted: bool)
         static=np.asarray(static, dtype=bool).copy(),
         fitted=fitted,
         world_from_sensor=sweep.world_from_sensor,
+        doppler_residual_mps=np.full(len(sweep), np.nan) if residual is None else residual,
     )
 
 
@@ -139,7 +152,8 @@ def read_scene(
             static = fit.static_masks.get(sw.channel) if fit.valid else None
             if static is None:
                 static = np.zeros(len(sw), dtype=bool)
-            by_token[sw.token] = _record(sw, raw[sw.channel], static, fit.valid)
+            residual = estimator.radial_residuals(sw, fit)
+            by_token[sw.token] = _record(sw, raw[sw.channel], static, fit.valid, residual)
         frames.append(
             FrameRecord(
                 timestamp_us=int(frame.timestamp_us),
@@ -386,6 +400,10 @@ class PointDistribution:
     range_m: dict[str, float]  # p10, p50, p90
     rcs_dbsm: dict[str, float]  # p10, p50, p90
     moving_fraction: float  # of the points of sweeps with a valid fit: not Doppler-static
+    # |radial velocity - the frame fit's prediction for a static point| of the points of
+    # sweeps with a valid fit, p50 and p75 (m/s): the radar's Doppler noise, static points
+    # being most of them
+    doppler_residual_mps: dict[str, float] = field(default_factory=dict)
     per_radar_range_p50_m: dict[str, float] = field(default_factory=dict)
     per_radar_range_p90_m: dict[str, float] = field(default_factory=dict)
     per_radar_rcs_p50_dbsm: dict[str, float] = field(default_factory=dict)
@@ -405,6 +423,16 @@ def _distribution(sweeps: Sequence[SweepRecord]) -> tuple[np.ndarray, np.ndarray
     return rng, rcs, (moving / n_fit if n_fit else math.nan)
 
 
+def _residuals(sweeps: Sequence[SweepRecord]) -> np.ndarray:
+    parts = [
+        np.abs(s.doppler_residual_mps)
+        for s in sweeps
+        if s.fitted and len(s) and s.doppler_residual_mps is not None
+    ]
+    res = np.concatenate(parts) if parts else np.zeros(0)
+    return res[np.isfinite(res)]
+
+
 def point_distribution(scenes: Sequence[SceneRecord]) -> PointDistribution:
     rng, rcs, moving = _distribution(_all_sweeps(scenes))
     per = {ch: _distribution(_all_sweeps(scenes, ch)) for ch in RADAR_CHANNELS}
@@ -413,6 +441,7 @@ def point_distribution(scenes: Sequence[SceneRecord]) -> PointDistribution:
         range_m=_percentiles(rng),
         rcs_dbsm=_percentiles(rcs),
         moving_fraction=moving,
+        doppler_residual_mps=_percentiles(_residuals(_all_sweeps(scenes)), (50, 75)),
         per_radar_range_p50_m={ch: _percentiles(d[0], (50,))["p50"] for ch, d in per.items()},
         per_radar_range_p90_m={ch: _percentiles(d[0], (90,))["p90"] for ch, d in per.items()},
         per_radar_rcs_p50_dbsm={ch: _percentiles(d[1], (50,))["p50"] for ch, d in per.items()},

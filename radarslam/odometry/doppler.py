@@ -371,6 +371,31 @@ class DopplerEstimator:
             usable=self._usable(sweep),
         )
 
+    def radial_residuals(self, sweep: RadarSweep, fit: EgoMotionFit) -> np.ndarray:
+        """(N,) each point's measured radial velocity minus what a static point there would
+        read under the frame's fitted twist (m/s, in the radar's own units: the configured
+        ``speed_scale_error`` applied back). NaN for a point the fit cannot use (at the sensor,
+        non-finite) and for every point of an invalid fit. Static points scatter around 0
+        with the radar's Doppler noise; moving ones by their own radial speed."""
+        n = len(sweep)
+        out = np.full(n, np.nan)
+        if not fit.valid or not n:
+            return out
+        c = self.config
+        p = sweep.points
+        px, py, vx, vy = (p[k].astype(np.float64) for k in ("x", "y", "vx", "vy"))
+        r = np.sqrt(px * px + py * py)
+        ok = np.isfinite(r) & (r > max(c.min_range_m, 1e-6)) & np.isfinite(vx) & np.isfinite(vy)
+        pose = np.asarray(sweep.ego_from_sensor, dtype=np.float64)
+        rot, t = pose[:2, :2], pose[:2, 3]
+        ux, uy = px[ok] / r[ok], py[ok] / r[ok]
+        ax = ux * rot[0, 0] + uy * rot[0, 1]  # line of sight in the ego frame, as fit_frame's rows
+        ay = ux * rot[1, 0] + uy * rot[1, 1]
+        x = fit.twist * (1.0 + (c.speed_scale_error or 0.0))
+        predicted = ax * x[0] + ay * x[1] + (ay * t[0] - ax * t[1]) * x[2]
+        out[ok] = -(ux * vx[ok] + uy * vy[ok]) - predicted
+        return out
+
     def fit_frame(
         self,
         frame: RadarFrame | Sequence[RadarSweep],

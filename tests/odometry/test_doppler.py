@@ -429,3 +429,40 @@ def test_a_radar_without_a_usable_point_is_left_out_of_the_joint_fit():
         np.testing.assert_array_equal(with_dead.static_masks[ch], mask)
         assert mask.shape == (len(frame.sweeps[ch]),)
     assert with_dead.num_points == without.num_points
+
+
+def test_radial_residuals_are_zero_on_static_points_and_the_radial_speed_of_moving_ones():
+    rng = np.random.default_rng(14)
+    v, w = np.array([8.0, 0.1]), 0.2
+    quiet = {"sigma_vr_mps": 0.0, "sigma_azimuth_rad": 0.0, "sigma_range_m": 0.0}
+    frame = make_frame(rng, v, w, moving_fraction=0.0, tangential_mps=0.0, **quiet)
+    ch = "RADAR_FRONT_LEFT"
+    # one more point, on a car moving at 3 m/s along the sensor's x axis, 13 m away
+    car = make_points(
+        rng,
+        np.array([[12.0, 5.0]]),
+        sensor_velocity(MOUNTS[ch], v, w),
+        np.array([[3.0, 0.0]]),
+        tangential_mps=0.0,
+        **quiet,
+    )
+    sweeps = dict(frame.sweeps)
+    sweeps[ch] = sweeps[ch].with_points(np.concatenate([sweeps[ch].points, car]))
+    frame = dataclasses.replace(frame, sweeps=sweeps)
+    est = DopplerEstimator(DopplerConfig(speed_scale_error=0.0))
+    fit = est.fit_frame(frame)
+    res = est.radial_residuals(frame.sweeps[ch], fit)
+    np.testing.assert_allclose(res[:-1], 0.0, atol=1e-5)  # float32 fields
+    assert abs(res[-1]) == pytest.approx(3.0 * 12.0 / 13.0, abs=1e-4)
+    assert not fit.static_masks[ch][-1]
+    # radars reading 5 % fast, configured as such: residuals in their own units, 0 when static
+    fast = dataclasses.replace(
+        frame,
+        sweeps={c: sw.with_points(_scaled_velocity(sw.points, 1.05)) for c, sw in sweeps.items()},
+    )
+    est5 = DopplerEstimator(DopplerConfig(speed_scale_error=0.05))
+    res5 = est5.radial_residuals(fast.sweeps[ch], est5.fit_frame(fast))
+    np.testing.assert_allclose(res5[:-1], 0.0, atol=1e-5)
+    assert abs(res5[-1]) == pytest.approx(1.05 * 3.0 * 12.0 / 13.0, abs=1e-4)
+    invalid = dataclasses.replace(fit, valid=False)
+    assert np.isnan(est.radial_residuals(frame.sweeps[ch], invalid)).all()
