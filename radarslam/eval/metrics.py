@@ -1,7 +1,8 @@
 """Trajectory error metrics: the pure-math core of ``radarslam eval`` (evo-like layering).
 
 Layers: plane geometry helpers -> one function per metric returning a frozen result dataclass
-(:func:`ate`, :func:`rpe`, :func:`drift`) -> the results-folder evaluator (``evaluate.py``) -> CLI.
+(:func:`ate`, :func:`ate_clock_offsets`, :func:`rpe`, :func:`drift`) -> the results-folder
+evaluator (``evaluate.py``) -> CLI.
 
 Everything is evaluated **in the ground plane**: poses are projected to (x, y, yaw) before any
 alignment or error, because the radar estimate is planar while nuScenes ground truth carries a
