@@ -54,7 +54,6 @@ RPE10_RATIO_TARGET = 0.8
 HEADING_RATE_TARGET_DEG_S = 0.3
 # The ground truth's clock is searched this far either way for the offset that fits best.
 CLOCK_OFFSET_MAX_S = 0.1
-_CLOCK_STEPS = 41  # 5 ms apart (ate_clock_offsets' default step)
 NEES_RANGE = (1.5, 6.0)  # 0.5-2x the dimension (3)
 REALTIME_TARGET = 20.0
 
@@ -209,8 +208,8 @@ def segment_metrics(r: dict, method: str) -> dict:
         "ate_cross_m": aligned.cross_rmse_m,
         "clock_offset_ms": 1e3 * clock.best_offset_s if clock else float("nan"),
         "ate_clock_m": clock.best_rmse_m if clock else float("nan"),
-        # squared ATE at every offset and the poses compared, to pool a common offset
-        "clock_sq": np.square(clock.rmse_m) if clock else np.full(_CLOCK_STEPS, np.nan),
+        # the offsets, the squared ATE at each and the poses compared, to pool a common offset
+        "clock_offsets_sq": (clock.offsets_s, np.square(clock.rmse_m)) if clock else None,
         "clock_count": clock.count if clock else 0,
         "ate_first_m": first.rmse_m,
         # A scene that barely moves has no meaningful drift per distance.
@@ -262,14 +261,13 @@ def pooled(rows: list[dict]) -> dict:
 def common_clock(rows: list[dict]) -> dict[str, float]:
     """The one clock offset of the ground truth (ms) that fits every segment together best,
     and the pooled ATE there (m)."""
-    counts = np.array([x["clock_count"] for x in rows], dtype=float)
-    sq = np.array([x["clock_sq"] for x in rows])
-    ok = counts > 0
+    found = [x for x in rows if x["clock_count"] > 0]
     offset_ms = ate_m = float("nan")
-    if ok.any():
-        pooled_sq = (counts[ok, None] * sq[ok]).sum(0) / counts[ok].sum()
+    if found:
+        counts = np.array([x["clock_count"] for x in found], dtype=float)
+        pooled_sq = counts @ np.array([x["clock_offsets_sq"][1] for x in found]) / counts.sum()
         k = int(np.argmin(pooled_sq))
-        offset_ms = 1e3 * CLOCK_OFFSET_MAX_S * (2 * k / (_CLOCK_STEPS - 1) - 1)
+        offset_ms = 1e3 * float(found[0]["clock_offsets_sq"][0][k])
         ate_m = float(np.sqrt(pooled_sq[k]))
     return {"clock_offset_common_ms": offset_ms, "ate_clock_common_m": ate_m}
 
@@ -281,7 +279,7 @@ def _nan_average(values, weights) -> float:
 
 
 def _public(row: dict) -> dict:
-    out = {k: v for k, v in row.items() if not k.endswith("_sq")}
+    out = {k: v for k, v in row.items() if not k.endswith("_sq")}  # arrays, not JSON
     for key, sq in (("rpe_1s_m", "rpe_1s_sq"), ("rpe_10m_m", "rpe_10m_sq")):
         if sq in row:
             out[key] = float(np.sqrt(np.mean(row[sq]))) if row[sq].size else float("nan")

@@ -160,7 +160,7 @@ def trajectory_metrics(
     clock = None
     if ref_track is not None and cfg.clock_offset_max_ms > 0:
         clock = ate_clock_offsets(
-            est, t_us, ref_track[1], ref_track[0], cfg.clock_offset_max_ms * 1e-3, 0.005
+            est, t_us, ref_track[1], ref_track[0], cfg.clock_offset_max_ms * 1e-3
         )
     f = ate(est, ref, align="first")
     r_t = rpe(est, ref, t_us, delta=cfg.rpe_time_s, unit="s")

@@ -180,6 +180,17 @@ def _minimal_sets(seed: int, n: int, k: int, p: int) -> np.ndarray:
     return out
 
 
+def _ego_rows(ux: np.ndarray, uy: np.ndarray, rot: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(N, 3) rows ``a`` of the fit's model, ``a @ twist`` = minus the radial velocity a static
+    point reads: its line of sight (ux, uy) turned into the ego frame by the radar's ``rot``
+    ((2, 2), or (N, 2, 2) per point) and u . (w x t) / w for its lever arm ``t``."""
+    a = np.empty((len(ux), 3))
+    a[:, 0] = ux * rot[..., 0, 0] + uy * rot[..., 0, 1]
+    a[:, 1] = ux * rot[..., 1, 0] + uy * rot[..., 1, 1]
+    a[:, 2] = a[:, 1] * t[..., 0] - a[:, 0] * t[..., 1]
+    return a
+
+
 def _turned_rows(rows: np.ndarray, levers: np.ndarray) -> np.ndarray:
     """Derivative of the fit's rows (line of sight u, u . (w x t) / w) with respect to the
     radar's mounting yaw: u turns to u + d (-u_y, u_x); ``levers`` is (-t_y, t_x) per row."""
@@ -375,25 +386,18 @@ class DopplerEstimator:
         """(N,) each point's measured radial velocity minus what a static point there would
         read under the frame's fitted twist (m/s, in the radar's own units: the configured
         ``speed_scale_error`` applied back). NaN for a point the fit cannot use (at the sensor,
-        non-finite) and for every point of an invalid fit. Static points scatter around 0
-        with the radar's Doppler noise; moving ones by their own radial speed."""
-        n = len(sweep)
-        out = np.full(n, np.nan)
-        if not fit.valid or not n:
+        non-finite, Doppler-ambiguous where the fit drops those) and for every point of an
+        invalid fit. Static points scatter around 0 with the radar's Doppler noise; moving ones
+        by their own radial speed."""
+        out = np.full(len(sweep), np.nan)
+        if not fit.valid or not len(sweep):
             return out
-        c = self.config
-        p = sweep.points
-        px, py, vx, vy = (p[k].astype(np.float64) for k in ("x", "y", "vx", "vy"))
-        r = np.sqrt(px * px + py * py)
-        ok = np.isfinite(r) & (r > max(c.min_range_m, 1e-6)) & np.isfinite(vx) & np.isfinite(vy)
+        ok = self._usable(sweep)
+        u, vr = sweep_doppler(sweep)
         pose = np.asarray(sweep.ego_from_sensor, dtype=np.float64)
-        rot, t = pose[:2, :2], pose[:2, 3]
-        ux, uy = px[ok] / r[ok], py[ok] / r[ok]
-        ax = ux * rot[0, 0] + uy * rot[0, 1]  # line of sight in the ego frame, as fit_frame's rows
-        ay = ux * rot[1, 0] + uy * rot[1, 1]
-        x = fit.twist * (1.0 + (c.speed_scale_error or 0.0))
-        predicted = ax * x[0] + ay * x[1] + (ay * t[0] - ax * t[1]) * x[2]
-        out[ok] = -(ux * vx[ok] + uy * vy[ok]) - predicted
+        a = _ego_rows(u[ok, 0], u[ok, 1], pose[:2, :2], pose[:2, 3])
+        x = fit.twist * (1.0 + (self.config.speed_scale_error or 0.0))
+        out[ok] = vr[ok] + a @ x  # the model: a @ x = -v_r of a static point
         return out
 
     def fit_frame(
@@ -449,10 +453,7 @@ class DopplerEstimator:
         rot, t = poses[radar_of, :2, :2], poses[radar_of, :2, 3]
         rs = r[sel]
         ux, uy = px[sel] / rs, py[sel] / rs
-        a = np.empty((len(sel), 3))
-        a[:, 0] = ux * rot[:, 0, 0] + uy * rot[:, 0, 1]  # line of sight in the ego frame
-        a[:, 1] = ux * rot[:, 1, 0] + uy * rot[:, 1, 1]
-        a[:, 2] = a[:, 1] * t[:, 0] - a[:, 0] * t[:, 1]  # u . (w x t) / w
+        a = _ego_rows(ux, uy, rot, t)
         b = -(ux * vx[sel] + uy * vy[sel])
         # Per radar, its lever arm: the relative threshold needs each sensor's speed.
         levers = np.stack([-poses[:, 1, 3], poses[:, 0, 3]], axis=1)
