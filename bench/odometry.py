@@ -196,6 +196,7 @@ def segment_metrics(r: dict, method: str) -> dict:
     length = float(m.path_lengths_m(m.to_xy_yaw(gt))[-1])
     first = m.ate(est, gt, align="first")
     aligned = m.ate(est, gt, align="se2")
+    scaled = m.ate(est, gt, align="sim2")
     clock = m.ate_clock_offsets(est, t, gt, t, CLOCK_OFFSET_MAX_S)
     e1 = _rpe_errors(est, gt, t, 1.0, "s")
     e10 = _rpe_errors(est, gt, None, 10.0, "m")
@@ -206,6 +207,8 @@ def segment_metrics(r: dict, method: str) -> dict:
         "ate_m": aligned.rmse_m,
         "ate_along_m": aligned.along_rmse_m,
         "ate_cross_m": aligned.cross_rmse_m,
+        # ground-truth length / estimated length (Umeyama with scale): above 1, estimate short
+        "sim2_scale": scaled.alignment.scale,
         "clock_offset_ms": 1e3 * clock.best_offset_s if clock else float("nan"),
         "ate_clock_m": clock.best_rmse_m if clock else float("nan"),
         # the offsets, the squared ATE at each and the poses compared, to pool a common offset
@@ -249,6 +252,7 @@ def pooled(rows: list[dict]) -> dict:
             for key in ("ate_first_m", "ate_along_m", "ate_cross_m", "ate_clock_m")
         },
         "end_drift_pct": _nan_average([x["end_drift_pct"] for x in rows], lengths),
+        "sim2_scale": _nan_average([x["sim2_scale"] for x in rows], lengths),
         **common_clock(rows),
         "rpe_1s_m": float(np.sqrt(np.mean(e1))) if e1.size else float("nan"),
         "rpe_10m_m": float(np.sqrt(np.mean(e10))) if e10.size else float("nan"),
@@ -336,14 +340,19 @@ def print_table(title: str, per_scene: dict[str, dict[str, dict]], pool: dict[st
 
 
 def print_split(per_scene: dict[str, dict[str, dict]], pool: dict[str, dict]) -> None:
-    """ATE along and across the ground truth's heading, and against the ground truth read with
-    its clock shifted by the offset that fits each scene and method best (within +-100 ms)."""
+    """ATE along and across the ground truth's heading, the scale of a similarity alignment, and
+    the ATE against the ground truth read with its clock shifted by the offset that fits each
+    scene and method best (within +-100 ms)."""
     print(
-        "\nATE split (m, SE(2)-aligned): along / across the ground truth's heading; the ground "
-        "truth's clock shifted by the offset that fits best (ms, + = radar stamps early) and the "
-        "ATE there"
+        "\nATE split (m, SE(2)-aligned): along / across the ground truth's heading; the scale "
+        "of a similarity alignment (ground truth / estimate, pooled weighted by length); the "
+        "ground truth's clock shifted by the offset that fits best (ms, + = radar stamps early) "
+        "and the ATE there"
     )
-    head = f"{'scene':<12} {'method':<9} {'along':>7} {'across':>7} {'offset':>7} {'ATE':>7}"
+    head = (
+        f"{'scene':<12} {'method':<9} {'along':>7} {'across':>7} {'scale':>7} {'offset':>7} "
+        f"{'ATE':>7}"
+    )
     print(head)
     print("-" * len(head))
     for scene, rows in [*per_scene.items(), ("pooled", pool)]:
@@ -352,7 +361,8 @@ def print_split(per_scene: dict[str, dict[str, dict]], pool: dict[str, dict]) ->
             off = x.get("clock_offset_ms", float("nan"))
             print(
                 f"{scene:<12} {method:<9} {x['ate_along_m']:>7.3f} {x['ate_cross_m']:>7.3f} "
-                f"{'' if off != off else f'{off:.0f}':>7} {x['ate_clock_m']:>7.3f}"
+                f"{x['sim2_scale']:>7.4f} {'' if off != off else f'{off:.0f}':>7} "
+                f"{x['ate_clock_m']:>7.3f}"
             )
     ours, peer = pool["ours"], pool["kiss-icp"]
     print(

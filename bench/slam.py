@@ -47,6 +47,19 @@ def joint_ate(est: np.ndarray, gt: np.ndarray) -> float:
     return float(ate(est, gt, align="se2").rmse_m)
 
 
+def map_scale(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    """A map's scale against its ground truth (Umeyama with scale: truth length / map length)
+    and the ATE after that alignment; nan where there is nothing to align."""
+    from radarslam.eval.metrics import ate
+
+    if len(est) < 2:
+        return {"scale_slam_in_map_true_time": float("nan"),
+                "ate_slam_in_map_true_time_sim2_m": float("nan")}  # fmt: skip
+    fit = ate(est, gt, align="sim2")
+    return {"scale_slam_in_map_true_time": float(fit.alignment.scale),
+            "ate_slam_in_map_true_time_sim2_m": float(fit.rmse_m)}  # fmt: skip
+
+
 def revisited(gt_poses: np.ndarray, sessions: np.ndarray, radius_m: float = 10.0) -> np.ndarray:
     """Mask of the poses within ``radius_m`` (ground truth) of another session's: the part of a
     run that inter-session loop closure can correct at all."""
@@ -383,6 +396,9 @@ def main() -> None:
         "ate_slam_in_map_true_time_m": joint_ate(slam_est, slam_true)
         if truth is not None
         else None,
+        # the map's scale there (a similarity alignment: truth / map, above 1 where the map is
+        # small) and the ATE it leaves
+        **(map_scale(slam_est, slam_true) if truth is not None else {}),
         "revisited_fraction": float(slam_rev.mean()),
         "ate_odometry_revisited_m": joint_ate(odo["poses"][sel][odo_rev], odo["gt"][sel][odo_rev]),
         "ate_slam_revisited_m": joint_ate(slam_est[slam_rev], slam_gt[slam_rev]),
@@ -464,6 +480,9 @@ def main() -> None:
          f"{rows['ate_odometry_in_map_true_time_m']:.2f} m = "
          f"{true_ratio:.2f}"
          if truth is not None else "n/a (not a synthetic dataroot)", ""),
+        ("the map's scale against that truth (similarity alignment: truth / map) and the ATE "
+         "it leaves", f"{rows['scale_slam_in_map_true_time']:.4f}, "
+         f"{rows['ate_slam_in_map_true_time_sim2_m']:.2f} m" if truth is not None else "n/a", ""),
         (f"same, key frames within 10 m of another session ({rows['revisited_fraction']:.0%})",
          f"{rows['ate_slam_revisited_m']:.2f} / {rows['ate_odometry_revisited_m']:.2f} m = "
          f"{rows['ate_slam_revisited_m'] / max(rows['ate_odometry_revisited_m'], 1e-9):.2f}"

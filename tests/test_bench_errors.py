@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
@@ -114,3 +115,20 @@ def test_the_settings_bench_reruns_a_row_when_the_weights_change(tmp_path):
     assert bench.config_digest(cfg) != same
     off = load_config(SlamConfig, None, ["loops.enabled=false", "loops.checkpoint=/no/such.pt"])
     assert bench.config_digest(off)  # no weights read when loop closure is off
+
+
+def test_the_slam_bench_reads_a_small_map_as_a_scale_above_one():
+    import importlib.util
+
+    from radarslam.geometry import se2_to_matrix
+
+    spec = importlib.util.spec_from_file_location("bench_slam", BENCH / "slam.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    gt = np.stack([se2_to_matrix(3.0 * k, 0.05 * k**2, 0.1 * k) for k in range(40)])
+    small = gt.copy()
+    small[:, :2, 3] *= 0.999  # a map 0.1 % small
+    fit = bench.map_scale(small, gt)
+    assert fit["scale_slam_in_map_true_time"] == pytest.approx(1 / 0.999, rel=1e-9)
+    assert fit["ate_slam_in_map_true_time_sim2_m"] == pytest.approx(0.0, abs=1e-9)
+    assert np.isnan(bench.map_scale(gt[:1], gt[:1])["scale_slam_in_map_true_time"])

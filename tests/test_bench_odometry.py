@@ -50,3 +50,14 @@ def test_one_clock_offset_pooled_over_segments(odobench):
     assert pooled["ate_clock_common_m"] > per_segment + 0.01
     none = odobench.common_clock([{**rows[0], "clock_count": 0}])
     assert np.isnan(none["clock_offset_common_ms"]) and np.isnan(none["ate_clock_common_m"])
+
+
+def test_segment_metrics_read_a_short_estimate_as_a_scale_above_one(odobench):
+    seg = _segment(odobench, 0.0)
+    seg["ours"] = seg["ours"].copy()
+    seg["ours"][:, :3, 3] *= 0.997  # the estimate 0.3 % short
+    row = odobench.segment_metrics(seg, "ours")
+    assert row["sim2_scale"] == pytest.approx(1 / 0.997, rel=1e-9)
+    assert row["ate_along_m"] > 0.01  # without the scale the shortfall shows along the track
+    pooled = odobench.pooled([row, odobench.segment_metrics(_segment(odobench, 0.0), "ours")])
+    assert 1.0 < pooled["sim2_scale"] < 1 / 0.997

@@ -73,6 +73,14 @@ def print_report(report, results_dir: Path, cfg) -> None:
             ],
         ),
         (
+            "scale of a similarity alignment (ground truth / estimate: above 1, the estimate is "
+            "short) and the ATE it leaves",
+            [
+                ("scale", "sim2_scale", 4),
+                ("ATE m Sim2", "ate_sim2_m", 3),
+            ],
+        ),
+        (
             "relative pose error (RMSE)",
             [
                 (f"RPE {cfg.rpe_time_s:g}s m", "rpe_time_trans_rmse_m", 3),

@@ -68,6 +68,10 @@ class TrajectoryMetrics:
     ate_rmse_m: float  # SE(2)-aligned
     ate_along_m: float  # its share along the ground truth's heading (RMS)
     ate_cross_m: float  # and across it
+    # Umeyama with scale (evo's correct_scale): ground-truth length / estimated length, above 1
+    # where the estimate is short (a speed-scale error, or a path that winds), and the ATE there
+    sim2_scale: float
+    ate_sim2_m: float
     ate_max_m: float
     ate_first_rmse_m: float  # unaligned: first poses made to coincide
     ate_final_first_m: float  # last-pose error with first-pose alignment (open-loop drift)
@@ -157,6 +161,7 @@ def trajectory_metrics(
     """Metrics of ``est`` against ``ref`` (associated pose by pose, stamps ``t_us``);
     ``ref_track`` (stamps, poses): the whole ground truth, for the clock-offset search."""
     a = ate(est, ref, align="se2")
+    a_sim = ate(est, ref, align="sim2")
     clock = None
     if ref_track is not None and cfg.clock_offset_max_ms > 0:
         clock = ate_clock_offsets(
@@ -172,6 +177,8 @@ def trajectory_metrics(
         ate_rmse_m=a.rmse_m,
         ate_along_m=a.along_rmse_m,
         ate_cross_m=a.cross_rmse_m,
+        sim2_scale=a_sim.alignment.scale,
+        ate_sim2_m=a_sim.rmse_m,
         ate_max_m=a.max_m,
         ate_first_rmse_m=f.rmse_m,
         ate_final_first_m=float(f.errors_m[-1]),

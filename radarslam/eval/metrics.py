@@ -7,7 +7,8 @@ evaluator (``evaluate.py``) -> CLI.
 Everything is evaluated **in the ground plane**: poses are projected to (x, y, yaw) before any
 alignment or error, because the radar estimate is planar while nuScenes ground truth carries a
 little z / roll / pitch that the radars cannot observe. On planar trajectories the numbers equal
-evo's ``ape``/``rpe`` with ``align=True, correct_scale=False`` (checked in the tests).
+evo's ``ape``/``rpe`` with ``align=True, correct_scale=False`` (checked in the tests), and the
+``"sim2"`` alignment evo's ``correct_scale=True``.
 
 Inputs are ``(N, 4, 4)`` ``world_from_ego`` poses or ``(N, 3)`` (x, y, yaw) arrays, estimate and
 reference already associated index by index.
@@ -28,7 +29,7 @@ from radarslam.timestamps import check_timestamps_us
 #: Rotation-block tolerance of (N, 4, 4) inputs: the trajectory files' (what read_kitti accepts).
 POSE_TOLERANCE = 1e-3
 
-AlignMode = Literal["se2", "none", "first"]
+AlignMode = Literal["se2", "sim2", "none", "first"]
 DeltaUnit = Literal["s", "m", "frames"]
 
 
@@ -93,10 +94,12 @@ def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Alignment2D:
-    """``ref_from_est`` rigid planar transform: p_ref = R p_est + t."""
+    """``ref_from_est`` planar transform: p_ref = scale R p_est + t (rigid where scale is 1)."""
 
     rotation: np.ndarray  # (2, 2)
     translation: np.ndarray  # (2,)
+    # reference length / estimated length: above 1, the estimate is too short
+    scale: float = 1.0
 
     @property
     def yaw_rad(self) -> float:
@@ -104,15 +107,15 @@ class Alignment2D:
 
     @property
     def matrix(self) -> np.ndarray:
-        """4x4 ``ref_from_est``."""
+        """4x4 ``ref_from_est`` (a similarity where :attr:`scale` is not 1)."""
         out = np.eye(4)
-        out[:2, :2] = self.rotation
+        out[:2, :2] = self.scale * self.rotation
         out[:2, 3] = self.translation
         return out
 
     def apply(self, xy_yaw: np.ndarray) -> np.ndarray:
         out = np.empty_like(xy_yaw)
-        out[:, :2] = xy_yaw[:, :2] @ self.rotation.T + self.translation
+        out[:, :2] = self.scale * xy_yaw[:, :2] @ self.rotation.T + self.translation
         out[:, 2] = _wrap(xy_yaw[:, 2] + self.yaw_rad)
         return out
 
@@ -125,6 +128,20 @@ def align_se2(est_xy, ref_xy) -> Alignment2D:
 
     Accepts (N, 2) positions, (N, 3) x/y/yaw or (N, 4, 4) poses (only positions are used).
     """
+    return _umeyama(est_xy, ref_xy, with_scale=False)
+
+
+def align_sim2(est_xy, ref_xy) -> Alignment2D:
+    """Least-squares similarity alignment in the plane (Umeyama): ``ref ≈ s R est + t``.
+
+    ``s`` (:attr:`Alignment2D.scale`) is the reference's length over the estimate's: a speed
+    scale error of the estimate shows there. A path that winds where the reference is straight
+    also comes out short, so on a long drive it mixes shape with speed. Positions that do not
+    spread (every one the same) leave the scale at 1."""
+    return _umeyama(est_xy, ref_xy, with_scale=True)
+
+
+def _umeyama(est_xy, ref_xy, with_scale: bool) -> Alignment2D:
     e = _positions(est_xy, "estimate")
     r = _positions(ref_xy, "reference")
     if len(e) != len(r):
@@ -141,7 +158,11 @@ def align_se2(est_xy, ref_xy) -> Alignment2D:
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
         s[1, 1] = -1.0  # proper rotation, never a reflection
     rot = u @ s @ vt
-    return Alignment2D(rot, mean_r - rot @ mean_e)
+    scale = 1.0
+    if with_scale:
+        spread = float(np.mean(np.sum((e - mean_e) ** 2, axis=1)))
+        scale = float(np.sum(d * np.diag(s)) / spread)
+    return Alignment2D(rot, mean_r - scale * rot @ mean_e, scale)
 
 
 def _positions(a, what: str) -> np.ndarray:
@@ -239,18 +260,22 @@ def ate(est_poses, ref_poses, align: AlignMode = "se2") -> AteResult:
     """Absolute trajectory error in the ground plane.
 
     align: ``"se2"`` least-squares rigid alignment of all positions (evo ``align=True``),
-    ``"first"`` the first poses made to coincide (how an unaligned odometry run is judged), or
-    ``"none"`` (the estimate is already in the reference frame, e.g. SLAM anchored on the prior).
+    ``"sim2"`` the same with a scale (evo ``correct_scale=True``; the scale is
+    ``result.alignment.scale``), ``"first"`` the first poses made to coincide (how an unaligned
+    odometry run is judged), or ``"none"`` (the estimate is already in the reference frame, e.g.
+    SLAM anchored on the prior).
     """
     e, r = _check_pair(est_poses, ref_poses)
     if align == "se2":
         al = align_se2(e[:, :2], r[:, :2])
+    elif align == "sim2":
+        al = align_sim2(e[:, :2], r[:, :2])
     elif align == "first":
         al = align_first(e, r)
     elif align == "none":
         al = IDENTITY_ALIGNMENT
     else:
-        raise DataError(f"ATE: unknown alignment {align!r} (expected se2, first or none)")
+        raise DataError(f"ATE: unknown alignment {align!r} (expected se2, sim2, first or none)")
     aligned = al.apply(e)
     diff = aligned[:, :2] - r[:, :2]
     errors = np.linalg.norm(diff, axis=1)

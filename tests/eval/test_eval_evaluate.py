@@ -212,3 +212,17 @@ def test_eval_reports_the_ate_split_and_the_clock_offset_of_the_ground_truth(tmp
     assert data["odometry"]["clock_offset_ms"] == pytest.approx(40.0)
     off = evaluate_results(tmp_path, EvalConfig(plots=False, clock_offset_max_ms=0), write=False)
     assert off.per_session["scene-a"]["odometry"].as_dict()["clock_offset_ms"] is None
+
+
+def test_eval_reports_the_scale_of_a_short_estimate(tmp_path):
+    ts = 1_600_000_000_000_000 + np.arange(0, 10_000_000, 50_000, dtype=np.int64)
+    gt = np.stack([se2_to_matrix(5.0 * t, 0.02 * (5.0 * t) ** 2, 0.0) for t in (ts - ts[0]) * 1e-6])
+    short = gt.copy()
+    short[:, :2, 3] *= 0.998  # a Doppler speed read 0.2 % slow
+    write_results(tmp_path, [SessionResult("scene-a", ts, gt.copy(), short, gt)])
+    evaluate_results(tmp_path, EvalConfig(plots=False))
+    data = json.loads((tmp_path / "metrics.json").read_text())["per_session"]["scene-a"]
+    assert data["odometry"]["sim2_scale"] == pytest.approx(1 / 0.998, rel=1e-9)
+    assert data["odometry"]["ate_sim2_m"] == pytest.approx(0.0, abs=1e-9)
+    assert data["odometry"]["ate_rmse_m"] > 0.01
+    assert data["slam"]["sim2_scale"] == pytest.approx(1.0, abs=1e-12)

@@ -7,6 +7,7 @@ import pytest
 from radarslam.errors import DataError
 from radarslam.eval.metrics import (
     align_se2,
+    align_sim2,
     ate,
     ate_clock_offsets,
     drift,
@@ -41,6 +42,27 @@ def test_align_se2_recovers_a_rigid_transform():
     np.testing.assert_allclose(
         al.rotation @ est_xy.T + al.translation[:, None], ref[:, :2].T, atol=1e-9
     )
+
+
+def test_align_sim2_recovers_a_similarity_and_reads_a_short_estimate_as_scale_above_one():
+    ref = _circle()
+    rot, scale = -0.3, 1.002  # the estimate is 0.2 % short of the reference
+    c, s = np.cos(rot), np.sin(rot)
+    est_xy = (ref[:, :2] - [4.0, 9.0]) @ np.array([[c, -s], [s, c]]) / scale
+    al = align_sim2(est_xy, ref[:, :2])
+    assert al.scale == pytest.approx(scale, abs=1e-12)
+    assert al.yaw_rad == pytest.approx(rot, abs=1e-12)
+    np.testing.assert_allclose(
+        al.apply(np.column_stack([est_xy, ref[:, 2]]))[:, :2], ref[:, :2], atol=1e-9
+    )
+    np.testing.assert_allclose(al.matrix[:2, :2], scale * al.rotation)
+    est = np.column_stack([est_xy, ref[:, 2] - rot])
+    assert ate(est, ref, align="sim2").rmse_m == pytest.approx(0.0, abs=1e-9)
+    # without the scale the 0.2 % shows: 0.06 m on a circle of radius 30 m
+    assert ate(est, ref, align="se2").rmse_m == pytest.approx(30 * 0.002 / scale, rel=1e-6)
+    assert align_se2(est_xy, ref[:, :2]).scale == 1.0
+    # positions that do not spread leave the scale at 1 (only the translation is observable)
+    assert align_sim2(np.zeros((5, 2)), ref[:5, :2]).scale == 1.0
 
 
 def test_ate_hand_computed():
@@ -117,6 +139,20 @@ def test_ate_and_rpe_match_evo_on_planar_trajectory():
     assert ours.rmse_m == pytest.approx(res.stats["rmse"], abs=1e-6)
     assert ours.max_m == pytest.approx(res.stats["max"], abs=1e-6)
     np.testing.assert_allclose(ours.errors_m, res.np_arrays["error_array"], atol=1e-6)
+    # with a scale: the estimate 0.5 % short
+    short_t = trajectory.PoseTrajectory3D(poses_se3=list(est_poses), timestamps=t)
+    short_t.scale(0.995)
+    res = main_ape.ape(
+        ref_t,
+        copy.deepcopy(short_t),
+        metrics.PoseRelation.translation_part,
+        align=True,
+        correct_scale=True,
+    )
+    ours = ate(np.stack(short_t.poses_se3), ref_poses, align="sim2")
+    assert ours.rmse_m == pytest.approx(res.stats["rmse"], abs=1e-6)
+    np.testing.assert_allclose(ours.errors_m, res.np_arrays["error_array"], atol=1e-6)
+    assert ours.alignment.scale == pytest.approx(1 / 0.995, rel=2e-3)
     res = main_ape.ape(ref_t, copy.deepcopy(est_t), metrics.PoseRelation.translation_part)
     assert ate(est_poses, ref_poses, align="none").rmse_m == pytest.approx(
         res.stats["rmse"], abs=1e-6
