@@ -20,7 +20,9 @@ the same frames (filters invalid_state 0, ambig_state 3):
 Per scene and pooled over scenes (ATE and RPE as RMS over all poses or pairs, drift weighted by
 length): ATE after SE(2) alignment and from the first pose, RPE translation over 1 s and 10 m,
 end-point drift (end position error from the first pose, % of the path), CPU ms per frame.
-Then the Doppler fit's heading over each scene against the ground truth, the key-frame NEES of
+Then the ATE split along and across the ground truth's heading, each method's scale (a
+similarity alignment: ground-truth length over the estimate's) and the ground truth's clock
+offset that fits best. Then the Doppler fit's heading over each scene against the ground truth, the key-frame NEES of
 ours (mean over key-frame motions; 3 is consistent) and ours' real-time factor on ``--jobs``
 cores (CPU per frame with the sweeps' reading, and the tables' loading once per process; 13 Hz
 radar), and the start-up a process pays before its first frame (imports and compiled kernels,
