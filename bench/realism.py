@@ -248,8 +248,14 @@ def print_ate_tables(
     pool_twin: dict[str, dict],
 ) -> None:
     for method in METHODS:
-        print(f"\n{method}: ATE (m, SE(2)-aligned)")
-        head = f"{'scene':<12} {'real':>8} {'twin':>8} {'twin/real':>9}"
+        print(
+            f"\n{method}: ATE (m, SE(2)-aligned), and scale (ground-truth length over the "
+            "estimate's, similarity alignment; pooled weighted by length)"
+        )
+        head = (
+            f"{'scene':<12} {'real':>8} {'twin':>8} {'twin/real':>9} {'scale real':>11} "
+            f"{'scale twin':>11}"
+        )
         print(head)
         print("-" * len(head))
         for scene, a, b in [
@@ -257,7 +263,10 @@ def print_ate_tables(
             ("pooled", pool_real[method], pool_twin[method]),
         ]:
             ratio = b["ate_m"] / a["ate_m"] if a["ate_m"] > 0 else float("nan")
-            print(f"{scene:<12} {a['ate_m']:>8.3f} {b['ate_m']:>8.3f} {ratio:>9.2f}")
+            print(
+                f"{scene:<12} {a['ate_m']:>8.3f} {b['ate_m']:>8.3f} {ratio:>9.2f} "
+                f"{a['sim2_scale']:>11.4f} {b['sim2_scale']:>11.4f}"
+            )
 
 
 def main() -> None:
