@@ -22,14 +22,14 @@ length): ATE after SE(2) alignment and from the first pose, RPE translation over
 end-point drift (end position error from the first pose, % of the path), CPU ms per frame.
 Then the ATE split along and across the ground truth's heading, each method's scale (a
 similarity alignment: ground-truth length over the estimate's) and the ground truth's clock
-offset that fits best. Then the Doppler fit's heading over each scene against the ground truth, the key-frame NEES of
-ours (mean over key-frame motions; 3 is consistent) and ours' real-time factor on ``--jobs``
-cores (CPU per frame with the sweeps' reading, and the tables' loading once per process; 13 Hz
-radar), and the start-up a process pays before its first frame (imports and compiled kernels,
-about 1.5 s) apart, with the factor it leaves spread over the split. Where every scene is its
-own segment, ours also runs over all of them in one run, in order and reversed, as ``radarslam
-odometry`` over a dataroot does: each car's Doppler calibration then carries over to its next
-scenes.
+offset that fits best. Then the Doppler fit's heading over each scene against the ground truth,
+the key-frame NEES of ours (mean over key-frame motions; 3 is consistent) and ours' real-time
+factor on ``--jobs`` cores (CPU per frame with the sweeps' reading, and the tables' loading once
+per process; 13 Hz radar), and the start-up a process pays before its first frame (imports and
+compiled kernels, about 1.5 s) apart, with the factor it leaves spread over the split. Where
+every scene is its own segment, ours also runs over all of them in one run, in order and
+reversed, as ``radarslam odometry`` over a dataroot does: each car's Doppler calibration then
+carries over to its next scenes.
 """
 
 from __future__ import annotations
