@@ -107,7 +107,9 @@ def test_eval_cli(tmp_path):
                                    "--set", "rpe_distance_m=5"])  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "scene-a" in res.output and "RPE 5m" in res.output
+    assert "scale of a similarity alignment" in res.output
     data = json.loads((tmp_path / "metrics.json").read_text())
+    assert data["per_session"]["scene-a"]["odometry"]["sim2_scale"] > 0
     assert data["loops"] is None and data["config"]["rpe_distance_m"] == 5.0
     assert not (tmp_path / "plots").exists()
 
