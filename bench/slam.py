@@ -60,6 +60,33 @@ def map_scale(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
             "ate_slam_in_map_true_time_sim2_m": float(fit.rmse_m)}  # fmt: skip
 
 
+def loop_bias(loops, truth_of) -> dict[str, float]:
+    """Mean error of accepted loops' ``candidate_from_query`` against the truth, along and across
+    the query's heading (m), for loops between poses facing the same way and between poses
+    facing opposite ways (more than 90 deg apart), with their counts; nan where a group is empty.
+
+    ``truth_of(session, stamp_us)`` is the true ``world_from_ego`` (4x4). A cloud built with the
+    wrong mounting yaws is distorted alike in two passes driven the same way, so only loops
+    between opposite passes show it."""
+    from radarslam.geometry import invert
+
+    err: dict[str, list[np.ndarray]] = {"same": [], "opposite": []}
+    for lp in loops:
+        world_from_q = truth_of(lp.query.session, lp.query_timestamp_us)
+        world_from_c = truth_of(lp.candidate.session, lp.candidate_timestamp_us)
+        c_from_q = invert(world_from_c) @ world_from_q
+        e = invert(c_from_q) @ lp.candidate_from_query
+        key = "opposite" if abs(np.arctan2(c_from_q[1, 0], c_from_q[0, 0])) > np.pi / 2 else "same"
+        err[key].append(e[:2, 3])
+    out: dict[str, float] = {}
+    for key, rows in err.items():
+        a = np.array(rows).reshape(-1, 2)
+        out[f"loops_{key}_n"] = len(a)
+        out[f"loops_{key}_along_m"] = float(a[:, 0].mean()) if len(a) else float("nan")
+        out[f"loops_{key}_across_m"] = float(a[:, 1].mean()) if len(a) else float("nan")
+    return out
+
+
 def revisited(gt_poses: np.ndarray, sessions: np.ndarray, radius_m: float = 10.0) -> np.ndarray:
     """Mask of the poses within ``radius_m`` (ground truth) of another session's: the part of a
     run that inter-session loop closure can correct at all."""
@@ -399,6 +426,15 @@ def main() -> None:
         # the map's scale there (a similarity alignment: truth / map, above 1 where the map is
         # small) and the ATE it leaves
         **(map_scale(slam_est, slam_true) if truth is not None else {}),
+        # the accepted loops' mean error against that truth, by how the two passes face
+        **(
+            loop_bias(
+                result.accepted_loops,
+                lambda session, stamp_us: truth.poses(session, np.array([stamp_us]))[0],
+            )
+            if truth is not None
+            else {}
+        ),
         "revisited_fraction": float(slam_rev.mean()),
         "ate_odometry_revisited_m": joint_ate(odo["poses"][sel][odo_rev], odo["gt"][sel][odo_rev]),
         "ate_slam_revisited_m": joint_ate(slam_est[slam_rev], slam_gt[slam_rev]),
@@ -483,6 +519,12 @@ def main() -> None:
         ("the map's scale against that truth (similarity alignment: truth / map) and the ATE "
          "it leaves", f"{rows['scale_slam_in_map_true_time']:.4f}, "
          f"{rows['ate_slam_in_map_true_time_sim2_m']:.2f} m" if truth is not None else "n/a", ""),
+        ("accepted loops' mean error against that truth along / across the query's heading: "
+         "passes facing the same way; facing opposite ways",
+         f"{rows['loops_same_along_m']:+.2f} / {rows['loops_same_across_m']:+.2f} m "
+         f"({rows['loops_same_n']}); {rows['loops_opposite_along_m']:+.2f} / "
+         f"{rows['loops_opposite_across_m']:+.2f} m ({rows['loops_opposite_n']})"
+         if truth is not None else "n/a", ""),
         (f"same, key frames within 10 m of another session ({rows['revisited_fraction']:.0%})",
          f"{rows['ate_slam_revisited_m']:.2f} / {rows['ate_odometry_revisited_m']:.2f} m = "
          f"{rows['ate_slam_revisited_m'] / max(rows['ate_odometry_revisited_m'], 1e-9):.2f}"

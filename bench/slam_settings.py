@@ -39,6 +39,10 @@ import radarslam  # noqa: F401  (sets the OpenMP wait policy before torch/open3d
 #: Named alternatives: what each takes away, and its overrides of the SLAM preset.
 ALTERNATIVES: dict[str, tuple[str, list[str]]] = {
     "default": ("nothing: the preset", []),
+    "cloud-calibration-applied": (
+        "nothing: key-frame clouds built with the calibration pass's estimate too",
+        ["key_frames.cloud_calibration=applied"],
+    ),
     "one-vote": (
         "a session joins the map on one verified loop",
         ["loops.link_min_consistent_loops=1"],

@@ -132,3 +132,41 @@ def test_the_slam_bench_reads_a_small_map_as_a_scale_above_one():
     assert fit["scale_slam_in_map_true_time"] == pytest.approx(1 / 0.999, rel=1e-9)
     assert fit["ate_slam_in_map_true_time_sim2_m"] == pytest.approx(0.0, abs=1e-9)
     assert np.isnan(bench.map_scale(gt[:1], gt[:1])["scale_slam_in_map_true_time"])
+
+
+def test_the_slam_bench_splits_loop_errors_by_how_the_passes_face():
+    import importlib.util
+    from types import SimpleNamespace
+
+    from radarslam.geometry import se2_to_matrix
+    from radarslam.io.loops import NodeKey
+
+    spec = importlib.util.spec_from_file_location("bench_slam", BENCH / "slam.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    truth = {
+        ("a", 0): se2_to_matrix(10.0, 5.0, 0.3),
+        ("b", 0): se2_to_matrix(11.0, 5.5, 0.35),  # the same way
+        ("c", 0): se2_to_matrix(9.0, 4.0, 0.3 + np.pi),  # the other way
+    }
+
+    def loop(q, c, error):
+        c_from_q = np.linalg.inv(truth[(c, 0)]) @ truth[(q, 0)]
+        return SimpleNamespace(
+            query=NodeKey(q, 0),
+            candidate=NodeKey(c, 0),
+            query_timestamp_us=0,
+            candidate_timestamp_us=0,
+            candidate_from_query=c_from_q @ se2_to_matrix(*error),
+        )
+
+    loops = [loop("a", "b", (0.1, 0.0, 0.0)), loop("b", "a", (0.3, 0.0, 0.01)),
+             loop("a", "c", (0.0, -0.25, 0.0)), loop("c", "b", (0.02, -0.15, 0.0))]  # fmt: skip
+    out = bench.loop_bias(loops, lambda s, t: truth[(s, t)])
+    assert out["loops_same_n"] == 2 and out["loops_opposite_n"] == 2
+    assert out["loops_same_along_m"] == pytest.approx(0.2, abs=1e-9)
+    assert out["loops_same_across_m"] == pytest.approx(0.0, abs=1e-9)
+    assert out["loops_opposite_along_m"] == pytest.approx(0.01, abs=1e-9)
+    assert out["loops_opposite_across_m"] == pytest.approx(-0.2, abs=1e-9)
+    empty = bench.loop_bias(loops[:1], lambda s, t: truth[(s, t)])
+    assert empty["loops_opposite_n"] == 0 and np.isnan(empty["loops_opposite_across_m"])

@@ -33,6 +33,13 @@ class KeyFrameConfig(StrictModel):
     #: of every frame (free: it is already computed) or AutoPlace's DPR run again per sweep
     #: (Algorithm 1 of the paper, as the place-recognition training data was made).
     dynamic_points: Literal["odometry", "dpr"] = "odometry"
+    #: The radars' mounting yaws the key-frame clouds are built with: ``configured`` (the
+    #: configuration's ``odometry.mounting_yaw_deg``) or ``applied`` (what the odometry applies
+    #: from the run's first frame: those plus a calibration pass's estimate). Either is the same
+    #: for every session; the odometry's own per-session estimate never turns a cloud. With
+    #: ``applied`` loops between streets driven opposite ways lose their lateral bias (0.10-0.25 m
+    #: down to 0.01-0.08 m on the synthetic runs) but the maps come out no better (docs/results.md).
+    cloud_calibration: Literal["configured", "applied"] = "configured"
 
     _v_ref = field_validator("ref_channel")(check_radar_channel)
 

@@ -238,13 +238,16 @@ class OdometryFeed:
 
         cfg = self.config
         timings = self.timings
-        # The key-frame clouds take the calibration the configuration gives, the same for every
-        # session, never an estimate (the one the odometry folds in at each session, or a
-        # calibration pass's): loops register one session's clouds against another's, and
-        # clouds turned by different estimates disagree (turned per session, the benchmark's
-        # clouds linked 2 of 8 sessions instead of 8; turned by a calibration pass's estimate,
-        # its links depended on a few marginal registrations: one session 100 m off, or 2 of 8).
-        cloud_mounting = mounting_rotations(cfg.odometry.mounting_yaw_deg)
+        # The key-frame clouds take one calibration for every session (the configured one, or
+        # with ``cloud_calibration: applied`` that plus a calibration pass's estimate), never the
+        # estimate the odometry folds in at each session: loops register one session's clouds
+        # against another's, and clouds turned by different estimates disagree (turned per
+        # session, the benchmark's clouds linked 2 of 8 sessions instead of 8).
+        cloud_mounting = mounting_rotations(
+            self.odometry.config.mounting_yaw_deg
+            if cfg.key_frames.cloud_calibration == "applied"
+            else cfg.odometry.mounting_yaw_deg
+        )
         use_odometry_mask = cfg.key_frames.dynamic_points == "odometry"
         buffer = None
         drives = scene_drives(

@@ -256,7 +256,8 @@ class SlamPipeline:
         errors while the filter converges. An estimate that never got below the limit is not
         applied (on the three real Boston scenes, 60 s, it would move the sessions' error from
         their first pose from 0.33-0.47 m to 0.47-1.39 m). The key-frame clouds keep the
-        configured calibration (:class:`OdometryFeed`)."""
+        configured calibration unless ``key_frames.cloud_calibration`` is ``applied``
+        (:class:`OdometryFeed`)."""
         from radarslam.odometry.pipeline import RadarOdometry
         from radarslam.odometry.run import second_pass, single_pass
         from radarslam.slam.calibration_pass import calibration_pass

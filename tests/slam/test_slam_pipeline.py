@@ -970,6 +970,35 @@ def test_calibration_pass_applies_its_estimate_from_the_first_frame(reader, scen
         assert deg == pytest.approx(applied[ch] + left[ch], abs=1e-9)
 
 
+def test_key_frame_clouds_can_take_the_calibration_the_pass_applies(reader, scenes):
+    """``key_frames.cloud_calibration: applied``: every cloud is built with what the odometry
+    applies from the first frame (the pass's estimate), in the forked feed too."""
+    runs = {}
+    for which in ("configured", "applied"):
+        # (a pass over every scene: the tiny scenes never get the estimate below 0.1 deg)
+        cfg = SlamConfig(pipelined=which == "applied", calibration_pass_max_sigma_deg=None)
+        cfg.loops.enabled = False
+        cfg.odometry.fusion.calibration.passes = 2
+        cfg.key_frames.cloud_calibration = which
+        pipeline = SlamPipeline(reader, cfg, progress=False)
+        pipeline.run(scenes)
+        runs[which] = pipeline
+    applied = runs["applied"].odometry.config.mounting_yaw_deg
+    assert applied == runs["configured"].odometry.config.mounting_yaw_deg
+    ref = SlamConfig().key_frames.ref_channel
+    assert abs(applied[ref]) > 0.05
+    for name in scenes:
+        pairs = list(
+            zip(runs["configured"].key_frames(name), runs["applied"].key_frames(name), strict=True)
+        )
+        assert len(pairs) > 10
+        for nominal, turned in pairs:
+            assert _yaw_between(nominal.ego_from_ref, turned.ego_from_ref) == pytest.approx(
+                np.radians(applied[ref]), abs=1e-9
+            )
+            np.testing.assert_array_equal(nominal.odometry_pose, turned.odometry_pose)
+
+
 def test_a_calibration_pass_that_does_not_converge_is_not_applied(reader, scenes, caplog):
     runs = {}
     for passes in (1, 2):
