@@ -229,6 +229,11 @@ class FusionConfig(StrictModel):
     #: speed is not: with 1.0 the along-track step comes from Doppler and the lateral and yaw
     #: corrections from ICP.
     icp_along_track_sigma_fraction: float | None = Field(1.0, gt=0, le=1000)
+    #: The five radars sweep tens of ms apart: the joint Doppler fit reads each sweep at its own
+    #: time, the twist carried there by its rate of change over the valid fits of the last this
+    #: many seconds (``TwistRate``). None: every sweep taken at the frame's time, where braking
+    #: or speeding up reads as turning (left and right units see different speeds).
+    twist_rate_window_s: float | None = Field(0.5, gt=0, le=10)
     #: Standard deviation added to every Doppler twist (forward m/s, lateral m/s, rad/s), after
     #: the scaling above: on real radar the fit's residual covariance misses errors that persist
     #: across frames (velocities quantised at 0.25 m/s, one target set seen for several frames,

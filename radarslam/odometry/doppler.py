@@ -38,6 +38,7 @@ variance.
 from __future__ import annotations
 
 import functools
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -103,6 +104,17 @@ class EgoMotionFit:
     #: information vector (the estimate is information^-1 vector); zeros when unknown.
     mounting_information: np.ndarray = field(default_factory=lambda: np.zeros((5, 5)))
     mounting_information_vector: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    #: The time the twist holds at (us; None: the fit took every sweep as simultaneous) and the
+    #: twist's rate of change (d(vx, vy, yaw rate)/dt in the body frame) the fit assumed to carry
+    #: it to each sweep's own time.
+    time_us: int | None = None
+    twist_rate: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def twist_at(self, timestamp_us: int) -> np.ndarray:
+        """(3,) the twist at a sweep's time (the fitted one where the fit had no time)."""
+        if self.time_us is None:
+            return self.twist
+        return self.twist + (timestamp_us - self.time_us) * 1e-6 * self.twist_rate
 
     @property
     def twist(self) -> np.ndarray:
@@ -124,6 +136,43 @@ class TwistBounds:
 
     def scaled(self, gain: float) -> TwistBounds:
         return TwistBounds(self.center * gain, self.half_width * abs(gain))
+
+
+class TwistRate:
+    """The twist's rate of change from the recent joint fits: per component, the least-squares
+    slope over the fits of the last ``window_s`` (the body frame's d(vx, vy, yaw rate)/dt; a car's
+    d vy/dt is about 0). What :meth:`DopplerEstimator.fit_frame` needs to read each sweep of a
+    frame at its own time."""
+
+    def __init__(self, window_s: float, min_fits: int = 3) -> None:
+        self.window_us = window_s * 1e6
+        self.min_fits = min_fits
+        self._t: deque[float] = deque()
+        self._x: deque[np.ndarray] = deque()
+
+    def clear(self) -> None:
+        self._t.clear()
+        self._x.clear()
+
+    def add(self, timestamp_us: int, twist: np.ndarray) -> None:
+        self._t.append(float(timestamp_us))
+        self._x.append(np.asarray(twist, dtype=np.float64))
+        while self._t and self._t[0] < timestamp_us - self.window_us:
+            self._t.popleft()
+            self._x.popleft()
+
+    def rate(self, timestamp_us: int) -> np.ndarray | None:
+        """(3,) per second at ``timestamp_us``, from the fits of the window before it; None with
+        fewer than ``min_fits`` of them or where they span less than half the window."""
+        keep = [k for k, t in enumerate(self._t) if timestamp_us - self.window_us <= t]
+        if len(keep) < self.min_fits:
+            return None
+        t = np.array([self._t[k] for k in keep]) * 1e-6
+        if t[-1] - t[0] < 0.5 * self.window_us * 1e-6:
+            return None
+        x = np.stack([self._x[k] for k in keep])
+        tc = t - t.mean()
+        return (tc @ (x - x.mean(axis=0))) / float(tc @ tc)
 
 
 class DopplerConfig(StrictModel):
@@ -396,7 +445,7 @@ class DopplerEstimator:
         u, vr = sweep_doppler(sweep)
         pose = np.asarray(sweep.ego_from_sensor, dtype=np.float64)
         a = _ego_rows(u[ok, 0], u[ok, 1], pose[:2, :2], pose[:2, 3])
-        x = fit.twist * (1.0 + (self.config.speed_scale_error or 0.0))
+        x = fit.twist_at(sweep.timestamp_us) * (1.0 + (self.config.speed_scale_error or 0.0))
         out[ok] = vr[ok] + a @ x  # the model: a @ x = -v_r of a static point
         return out
 
@@ -405,6 +454,8 @@ class DopplerEstimator:
         frame: RadarFrame | Sequence[RadarSweep],
         bounds: TwistBounds | None = None,
         mounting_residuals: bool = False,
+        twist_rate: np.ndarray | None = None,
+        time_us: int | None = None,
     ) -> EgoMotionFit:
         """All radars of ``frame`` fitted jointly. With ``bounds``, only twists inside them are
         hypotheses: a frame whose radars all see one moving object (a car alongside) can fit it
@@ -412,12 +463,26 @@ class DopplerEstimator:
         each its own velocity, leaving the yaw rate free), and the fit is then a twist no car
         can reach within a frame. A frame with no plausible fit is invalid. With
         ``mounting_residuals`` the fit also reports what its residuals say about each radar's
-        mounting yaw (``mounting_information``)."""
+        mounting yaw (``mounting_information``).
+
+        The radars sweep one after another, tens of ms apart. With ``twist_rate`` (the body
+        frame's d(vx, vy, yaw rate)/dt, from the motion so far) each sweep's Doppler is read at
+        its own time: its static points see the twist carried from ``time_us`` (default: the
+        frame's time) by that rate, and the fit is the twist at ``time_us``. Without it every
+        sweep is taken at one time, and a vehicle speeding up or braking reads as turning (the
+        left and right units see different speeds)."""
         sweeps: Sequence[RadarSweep]
         if isinstance(frame, RadarFrame):
             sweeps = list(frame.sweeps.values())
+            if time_us is None:
+                time_us = int(frame.timestamp_us)
         else:
             sweeps = list(frame)
+        rate, t_ref = None, 0
+        if twist_rate is not None and np.any(twist_rate):
+            if time_us is None:
+                raise ValueError("fit_frame: a twist_rate needs the frame's time (time_us)")
+            rate, t_ref = np.asarray(twist_rate, dtype=np.float64), int(time_us)
         c = self.config
         min_range = max(c.min_range_m, 1e-6)
         channels = tuple(sw.channel for sw in sweeps)
@@ -455,6 +520,10 @@ class DopplerEstimator:
         ux, uy = px[sel] / rs, py[sel] / rs
         a = _ego_rows(ux, uy, rot, t)
         b = -(ux * vx[sel] + uy * vy[sel])
+        if rate is not None:
+            # a @ (x + dt * rate) = b at each sweep's dt: move the known part to the right
+            dt_s = np.array([(sweeps[k].timestamp_us - t_ref) * 1e-6 for k in filled])
+            b = b - dt_s[sweep_of[sel]] * (a @ rate) * (1.0 + c.speed_scale_error)
         # Per radar, its lever arm: the relative threshold needs each sensor's speed.
         levers = np.stack([-poses[:, 1, 3], poses[:, 0, 3]], axis=1)
         if bounds is not None and c.speed_scale_error:
@@ -499,6 +568,8 @@ class DopplerEstimator:
             mounting_jacobian=mount,
             mounting_information=info,
             mounting_information_vector=vector,
+            time_us=t_ref if rate is not None else None,
+            twist_rate=rate if rate is not None else np.zeros(3),
         )
 
     def _mounting(self, a, b, x, inl, radar_of, channels, levers, lateral, residuals: bool):

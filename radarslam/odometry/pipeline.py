@@ -62,7 +62,7 @@ from radarslam.odometry.calibration import (
     with_mounting,
 )
 from radarslam.odometry.config import OdometryConfig
-from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit, TwistBounds
+from radarslam.odometry.doppler import DopplerEstimator, EgoMotionFit, TwistBounds, TwistRate
 from radarslam.odometry.lie import adjoint_se2, exp_jacobian_twist, exp_se2, log_se2, planar
 from radarslam.odometry.linalg3 import inv3, solve3
 from radarslam.odometry.registration import RegistrationResult, ScanToMapRegistration
@@ -363,6 +363,8 @@ class RadarOdometry:
         #: The last valid Doppler fit: its twist (the centre of the next fit's bounds), the
         #: covariance the filter gave it (that of the twist held while fits are invalid), its time.
         self._last_fit: tuple[np.ndarray, np.ndarray, int] | None = None
+        window = self.config.fusion.twist_rate_window_s
+        self._rate = None if window is None else TwistRate(window)
 
     def _twist_bounds(self, timestamp_us: int) -> TwistBounds | None:
         rate = self.config.fusion.max_twist_rate
@@ -571,7 +573,10 @@ class RadarOdometry:
         self._track_rig(frame)
         frame = self.calibrated_frame(frame)
         fit = self.doppler.fit_frame(
-            frame, self._twist_bounds(frame.timestamp_us), mounting_residuals=self._residuals
+            frame,
+            self._twist_bounds(frame.timestamp_us),
+            mounting_residuals=self._residuals,
+            twist_rate=None if self._rate is None else self._rate.rate(frame.timestamp_us),
         )
         t1 = time.perf_counter()
         motion = self._frame_twist(frame, fit)
@@ -851,6 +856,8 @@ class RadarOdometry:
         self._twist, self._twist_cov = motion.twist, motion.cov
         if fit.valid:
             self._last_fit = (fit.twist, motion.cov, int(frame.timestamp_us))
+            if self._rate is not None:
+                self._rate.add(int(frame.timestamp_us), fit.twist)
         self._stopped = motion.stopped
         self._last_icp_cov = reg.icp_cov
 

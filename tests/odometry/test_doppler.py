@@ -18,6 +18,7 @@ from radarslam.odometry.doppler import (
     DopplerConfig,
     DopplerEstimator,
     TwistBounds,
+    TwistRate,
     fit_sensor_velocity,
 )
 from radarslam.odometry.lie import exp_se2
@@ -466,3 +467,64 @@ def test_radial_residuals_are_zero_on_static_points_and_the_radial_speed_of_movi
     assert abs(res5[-1]) == pytest.approx(1.05 * 3.0 * 12.0 / 13.0, abs=1e-4)
     invalid = dataclasses.replace(fit, valid=False)
     assert np.isnan(est.radial_residuals(frame.sweeps[ch], invalid)).all()
+
+
+def _sweeps_at_their_times(rng, twist, rate, offsets_ms, **noise) -> RadarFrame:
+    """Each radar swept ``offsets_ms`` from the frame's time (t = 1 s), its static points reading
+    the twist carried there by ``rate``."""
+    t0 = 1_000_000
+    sweeps = {}
+    for ch, dt_ms in zip(RADAR_CHANNELS, offsets_ms, strict=True):
+        x = twist + dt_ms * 1e-3 * rate
+        vs = sensor_velocity(MOUNTS[ch], x[:2], x[2])
+        pts, _ = random_sweep_points(rng, vs, n=60, moving_fraction=0.0, **noise)
+        sweeps[ch] = make_sweep(ch, pts, timestamp_us=t0 + round(dt_ms * 1e3))
+    return RadarFrame(timestamp_us=t0, sweeps=sweeps, world_from_ego=np.eye(4))
+
+
+def test_a_sweep_is_read_at_its_own_time_given_the_twist_rate():
+    rng = np.random.default_rng(21)
+    quiet = {"sigma_vr_mps": 0.0, "sigma_azimuth_rad": 0.0, "sigma_range_m": 0.0}
+    twist, rate = np.array([10.0, 0.0, 0.05]), np.array([-3.0, 0.0, 0.2])  # braking, turning in
+    # the left units 30-40 ms after the right ones: braking, they read slower, as in a left turn
+    frame = _sweeps_at_their_times(rng, twist, rate, (0.0, 15.0, -15.0, 20.0, -20.0), **quiet)
+    est = DopplerEstimator(DopplerConfig(speed_scale_error=0.0))
+    taken_at_once = est.fit_frame(frame)
+    assert taken_at_once.yaw_rate_radps > twist[2] + 0.01  # > 0.6 deg/s off
+    fit = est.fit_frame(frame, twist_rate=rate)
+    np.testing.assert_allclose(fit.twist, twist, atol=2e-4)  # float32 fields
+    assert fit.time_us == frame.timestamp_us and np.array_equal(fit.twist_rate, rate)
+    np.testing.assert_allclose(
+        fit.twist_at(frame.timestamp_us + 10_000) - fit.twist, 0.01 * rate, atol=1e-12
+    )
+    # each sweep's static points read 0 against the twist at their time
+    for sw in frame.sweeps.values():
+        np.testing.assert_allclose(est.radial_residuals(sw, fit), 0.0, atol=2e-4)
+    with pytest.raises(ValueError, match="time_us"):
+        est.fit_frame(list(frame.sweeps.values()), twist_rate=rate)
+    same = est.fit_frame(list(frame.sweeps.values()), twist_rate=rate, time_us=frame.timestamp_us)
+    np.testing.assert_array_equal(same.twist, fit.twist)
+    # a zero rate is the fit of old, which holds at no time
+    still = est.fit_frame(frame, twist_rate=np.zeros(3))
+    np.testing.assert_array_equal(still.twist, taken_at_once.twist)
+    assert still.time_us is None
+
+
+def test_the_twist_rate_is_the_slope_of_the_recent_fits():
+    rate = TwistRate(0.5)
+    assert rate.rate(0) is None
+    slope = np.array([-2.0, 0.0, 0.3])
+    for k in range(20):  # 13 Hz
+        t_us = k * 77_000
+        rate.add(t_us, np.array([12.0, 0.1, -0.1]) + t_us * 1e-6 * slope)
+        if k == 1:
+            assert rate.rate(t_us) is None  # two fits only
+    np.testing.assert_allclose(rate.rate(20 * 77_000), slope, atol=1e-9)
+    # the window holds the last 0.5 s of fits: an old jump is forgotten
+    rate.add(21 * 77_000, np.array([0.0, 0.0, 0.0]))
+    assert abs(rate.rate(21 * 77_000)[0]) > 10.0
+    for k in range(22, 32):
+        rate.add(k * 77_000, np.full(3, 1.0))
+    np.testing.assert_allclose(rate.rate(32 * 77_000), 0.0, atol=1e-12)
+    rate.clear()
+    assert rate.rate(32 * 77_000) is None
