@@ -232,7 +232,9 @@ class FusionConfig(StrictModel):
     #: The five radars sweep tens of ms apart: the joint Doppler fit reads each sweep at its own
     #: time, the twist carried there by its rate of change over the valid fits of the last this
     #: many seconds (``TwistRate``). None: every sweep taken at the frame's time, where braking
-    #: or speeding up reads as turning (left and right units see different speeds).
+    #: or speeding up reads as turning (left and right units see different speeds). Real split,
+    #: Doppler seed 0, pooled ATE / RPE per 10 m: 0.109 / 0.123 m at 0.5, 0.108 / 0.128 at 0.3,
+    #: 0.111 / 0.127 at 1.0, 0.111 / 0.124 with None.
     twist_rate_window_s: float | None = Field(0.5, gt=0, le=10)
     #: Standard deviation added to every Doppler twist (forward m/s, lateral m/s, rad/s), after
     #: the scaling above: on real radar the fit's residual covariance misses errors that persist
