@@ -150,10 +150,6 @@ class TwistRate:
         self._t: deque[float] = deque()
         self._x: deque[np.ndarray] = deque()
 
-    def clear(self) -> None:
-        self._t.clear()
-        self._x.clear()
-
     def add(self, timestamp_us: int, twist: np.ndarray) -> None:
         self._t.append(float(timestamp_us))
         self._x.append(np.asarray(twist, dtype=np.float64))
