@@ -563,9 +563,9 @@ def _misnamed(frames, channel: str, error_deg: float):
 def test_mounting_yaw_error_is_estimated_and_can_be_given_back(world):
     """A front-left radar 1 deg off its nominal yaw biases the Doppler yaw rate; the filter's
     mounting states find most of the error from the registrations (pinned: +0.74 +- 0.15 deg,
-    the other radars within 0.15 deg; ATE 0.062 -> 0.060 m, the correct car's 0.016 m; on other
-    drives of this world 0.86-0.96x), and a run given the error back as mounting_yaw_deg is the
-    correctly calibrated car's."""
+    the other radars within 0.15 deg; ATE 0.062 -> 0.060 m, the correct car's 0.016 m; over
+    this and two more drives of the world 0.93x on average), and a run given the error back as
+    mounting_yaw_deg is the correctly calibrated car's."""
     frames = drive(world, np.random.default_rng(5), num_frames=260, speed_mps=10.0,
                    yaw_rate_radps=lambda t: 0.1 * np.sin(0.3 * t), **NOISE)  # fmt: skip
     wrong = _misnamed(frames, "RADAR_FRONT_LEFT", 1.0)
@@ -582,7 +582,16 @@ def test_mounting_yaw_error_is_estimated_and_can_be_given_back(world):
     none = OdometryConfig.model_validate({"fusion": {"calibration": {"yaw_bias_model": "none"}}})
     plain = ate(poses(run("ours", wrong, none)), ref).rmse_m
     estimated = ate(poses(est), ref).rmse_m
-    assert estimated < plain, (estimated, plain)
+    gains = [estimated / plain]
+    for seed in (6, 7):  # one drive's gain moves with its noise: 0.97x here, 0.86x on seed 6
+        other = drive(world, np.random.default_rng(seed), num_frames=260, speed_mps=10.0,
+                      yaw_rate_radps=lambda t: 0.1 * np.sin(0.3 * t), **NOISE)  # fmt: skip
+        turned, truth = _misnamed(other, "RADAR_FRONT_LEFT", 1.0), gt(other)
+        gains.append(
+            ate(poses(run("ours", turned)), truth).rmse_m
+            / ate(poses(run("ours", turned, none)), truth).rmse_m
+        )
+    assert max(gains) < 1.0 and np.mean(gains) < 0.95, gains
     given = OdometryConfig.model_validate(
         {"mounting_yaw_deg": {"RADAR_FRONT_LEFT": 1.0}, "fusion": none.fusion.model_dump()}
     )
