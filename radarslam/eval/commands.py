@@ -74,10 +74,14 @@ def print_report(report, results_dir: Path, cfg) -> None:
         ),
         (
             "scale of a similarity alignment (ground truth / estimate: above 1, the estimate is "
-            "short) and the ATE it leaves",
+            "short) and the ATE it leaves; turn scale (estimate's heading change / ground "
+            f"truth's, step by step: above 1, it turns too far; where the truth turns "
+            f"{cfg.turn_scale_min_deg:g} deg or more)",
             [
                 ("scale", "sim2_scale", 4),
                 ("ATE m Sim2", "ate_sim2_m", 3),
+                ("turned deg", "turned_deg", 0),
+                ("turn scale", "turn_scale", 4),
             ],
         ),
         (
@@ -103,11 +107,15 @@ def print_report(report, results_dir: Path, cfg) -> None:
         console.print(table)
     if report.run:
         run = Table(title="whole run (per-session errors pooled; joint = one alignment)")
-        for name in ("run", "sessions", "poses", "ATE m (SE2)", "ATE m (first)", "ATE m (joint)"):
+        for name in (
+            "run", "sessions", "poses", "ATE m (SE2)", "ATE m (first)", "ATE m (joint)",
+            "turn scale",
+        ):  # fmt: skip
             run.add_column(name, justify="left" if name == "run" else "right")
         for kind, d in report.run.items():
             run.add_row(kind, str(d["num_sessions"]), str(d["num_poses"]), _fmt(d["ate_rmse_m"]),
-                        _fmt(d["ate_first_rmse_m"]), _fmt(d["ate_joint_rmse_m"]))  # fmt: skip
+                        _fmt(d["ate_first_rmse_m"]), _fmt(d["ate_joint_rmse_m"]),
+                        _fmt(d["turn_scale"], 4))  # fmt: skip
         console.print(run)
     if report.loops is not None:
         lm = report.loops.as_dict()

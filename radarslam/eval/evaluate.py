@@ -29,6 +29,8 @@ from radarslam.eval.metrics import (
     path_lengths_m,
     rpe,
     to_xy_yaw,
+    turn_scale,
+    turn_scale_of_steps,
 )
 from radarslam.geometry import invert
 from radarslam.io.atomic import write_json_atomic
@@ -48,6 +50,9 @@ class EvalConfig(StrictModel):
     # The ground truth's clock is also read shifted by up to this (5 ms steps; 0: not at all)
     # to report the offset against the estimate's stamps that fits best, and the ATE there.
     clock_offset_max_ms: float = Field(100.0, ge=0, le=1000)
+    # The turn scale (the estimate's heading change per degree of the ground truth's) is
+    # reported where the ground truth turns at least this much in all (summed |change|).
+    turn_scale_min_deg: float = Field(45.0, ge=0, le=100_000)
     loops: LoopEvalConfig = LoopEvalConfig()
     plots: bool = True
 
@@ -72,6 +77,10 @@ class TrajectoryMetrics:
     # where the estimate is short (a speed-scale error, or a path that winds), and the ATE there
     sim2_scale: float
     ate_sim2_m: float
+    # The estimate's heading change per unit of the ground truth's, fitted step by step (above
+    # 1: it turns too far); NaN where the truth turns less than turn_scale_min_deg in all.
+    turn_scale: float
+    turned_deg: float
     ate_max_m: float
     ate_first_rmse_m: float  # unaligned: first poses made to coincide
     ate_final_first_m: float  # last-pose error with first-pose alignment (open-loop drift)
@@ -168,6 +177,7 @@ def trajectory_metrics(
             est, t_us, ref_track[1], ref_track[0], cfg.clock_offset_max_ms * 1e-3
         )
     f = ate(est, ref, align="first")
+    turn = turn_scale(est, ref, cfg.turn_scale_min_deg)
     r_t = rpe(est, ref, t_us, delta=cfg.rpe_time_s, unit="s")
     r_d = rpe(est, ref, t_us, delta=cfg.rpe_distance_m, unit="m")
     dr = drift(est, ref, segment_lengths_m=cfg.drift_segment_lengths_m)
@@ -179,6 +189,8 @@ def trajectory_metrics(
         ate_cross_m=a.cross_rmse_m,
         sim2_scale=a_sim.alignment.scale,
         ate_sim2_m=a_sim.rmse_m,
+        turn_scale=turn.scale,
+        turned_deg=turn.turned_deg,
         ate_max_m=a.max_m,
         ate_first_rmse_m=f.rmse_m,
         ate_final_first_m=float(f.errors_m[-1]),
@@ -209,7 +221,7 @@ def evaluate_results(
     per_session: dict[str, dict[str, TrajectoryMetrics]] = {}
     errors_t: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
     pooled: dict[str, dict[str, list]] = {
-        k: {"ate": [], "first": [], "est": [], "ref": []} for k in KINDS
+        k: {"ate": [], "first": [], "est": [], "ref": [], "turn": []} for k in KINDS
     }
     gt_for_loops: dict[str, SessionGroundTruth] = {}
     for s in folder.sessions:
@@ -237,6 +249,7 @@ def evaluate_results(
             errors_t[s][kind] = ((t - t[0]) / 1e6, errs)
             pooled[kind]["ate"].append(errs)
             pooled[kind]["first"].append(ate(e, r, align="first").errors_m)
+            pooled[kind]["turn"].append(turn_scale(e, r).steps)
             # Odometry sessions start in frames of their own: placed on their ground-truth
             # first pose they share the world, and their joint ATE is the baseline of SLAM's.
             pooled[kind]["est"].append(r[0] @ invert(e[0]) @ e if kind == "odometry" else e)
@@ -270,6 +283,11 @@ def evaluate_results(
             "ate_rmse_m": float(np.sqrt(np.mean(all_err**2))),
             "ate_first_rmse_m": float(np.sqrt(np.mean(first_err**2))),
             "ate_joint_rmse_m": joint_rmse_m,
+            "turn_scale": turn_scale_of_steps(
+                np.concatenate([dh for dh, _ in p["turn"]]),
+                np.concatenate([de for _, de in p["turn"]]),
+                cfg.turn_scale_min_deg,
+            ).scale,
             "joint_sessions": len(in_joint),
         }
     loop_metrics = None

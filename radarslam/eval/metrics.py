@@ -1,8 +1,8 @@
 """Trajectory error metrics: the pure-math core of ``radarslam eval`` (evo-like layering).
 
 Layers: plane geometry helpers -> one function per metric returning a frozen result dataclass
-(:func:`ate`, :func:`ate_clock_offsets`, :func:`rpe`, :func:`drift`) -> the results-folder
-evaluator (``evaluate.py``) -> CLI.
+(:func:`ate`, :func:`ate_clock_offsets`, :func:`rpe`, :func:`drift`, :func:`turn_scale`) ->
+the results-folder evaluator (``evaluate.py``) -> CLI.
 
 Everything is evaluated **in the ground plane**: poses are projected to (x, y, yaw) before any
 alignment or error, because the radar estimate is planar while nuScenes ground truth carries a
@@ -559,6 +559,51 @@ def drift(
         num_segments=int(t_all.size),
         per_length=per_length,
     )
+
+
+# --- turn scale --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TurnScaleResult:
+    """How far the estimate turns per degree the ground truth turns, fitted over every step.
+
+    ``scale`` is the least-squares slope of the estimate's heading change on the ground truth's,
+    step by step (above 1: the estimate turns too far; a turn-rate scale error, where
+    ``rpe`` and ``drift`` mix turning and drifting). NaN where the ground truth turns less than
+    the minimum in all (a straight drive measures no turn). ``steps`` holds the per-step heading
+    changes (truth, estimate error; rad) for pooling several sessions with
+    :func:`turn_scale_of_steps`."""
+
+    scale: float
+    turned_deg: float  # the ground truth's heading change summed in absolute value
+    num_steps: int
+    steps: tuple[np.ndarray, np.ndarray] = field(repr=False, compare=False)
+
+
+def turn_scale_of_steps(
+    true_steps_rad: np.ndarray, error_steps_rad: np.ndarray, min_turn_deg: float = 45.0
+) -> TurnScaleResult:
+    """The turn scale of per-step heading changes of the truth and of the estimate's error."""
+    dh = np.asarray(true_steps_rad, dtype=np.float64).ravel()
+    de = np.asarray(error_steps_rad, dtype=np.float64).ravel()
+    if dh.shape != de.shape:
+        raise DataError(f"turn scale: {dh.size} truth steps against {de.size} error steps")
+    if not np.isfinite(min_turn_deg) or min_turn_deg < 0:
+        raise DataError(f"turn scale: the minimum turn must be >= 0 deg, got {min_turn_deg!r}")
+    turned = float(np.rad2deg(np.abs(dh).sum()))
+    sxx = float(dh @ dh)
+    scale = 1.0 + float(dh @ de) / sxx if turned >= max(min_turn_deg, 1e-9) else float("nan")
+    return TurnScaleResult(scale=scale, turned_deg=turned, num_steps=int(dh.size), steps=(dh, de))
+
+
+def turn_scale(est_poses, ref_poses, min_turn_deg: float = 45.0) -> TurnScaleResult:
+    """The estimate's turn scale against the reference (see :class:`TurnScaleResult`): the
+    heading error's change from pose to pose regressed on the reference's heading change."""
+    e, r = _check_pair(est_poses, ref_poses)
+    dh = _wrap(np.diff(r[:, 2]))
+    de = _wrap(np.diff(_wrap(e[:, 2] - r[:, 2])))
+    return turn_scale_of_steps(dh, de, min_turn_deg)
 
 
 # --- consistency of reported covariances ---------------------------------------------------------

@@ -228,3 +228,22 @@ def test_eval_reports_the_scale_of_a_short_estimate(tmp_path):
     assert data["odometry"]["ate_sim2_m"] == pytest.approx(0.0, abs=1e-9)
     assert data["odometry"]["ate_rmse_m"] > 0.01
     assert data["slam"]["sim2_scale"] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_eval_reports_how_far_the_estimate_turns(tmp_path):
+    ts = 1_600_000_000_000_000 + np.arange(0, 20_000_000, 50_000, dtype=np.int64)
+    t = (ts - ts[0]) * 1e-6
+    yaw = np.where(t < 5, 0.0, np.minimum(t - 5, 10) * np.pi / 20)  # 90 deg over 10 s
+    xy = np.cumsum(5.0 * 0.05 * np.column_stack([np.cos(yaw), np.sin(yaw)]), axis=0)
+    gt = np.stack([se2_to_matrix(x, y, h) for (x, y), h in zip(xy, yaw, strict=True)])
+    far = np.stack([se2_to_matrix(x, y, 1.02 * h) for (x, y), h in zip(xy, yaw, strict=True)])
+    write_results(tmp_path, [SessionResult("scene-a", ts, gt.copy(), far, gt)])
+    report = evaluate_results(tmp_path, EvalConfig(plots=False))
+    odo = report.per_session["scene-a"]["odometry"]
+    assert odo.turn_scale == pytest.approx(1.02, abs=1e-9)
+    assert odo.turned_deg == pytest.approx(90.0, abs=1e-6)
+    assert report.per_session["scene-a"]["slam"].turn_scale == pytest.approx(1.0, abs=1e-12)
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    assert data["run"]["odometry"]["turn_scale"] == pytest.approx(1.02, abs=1e-9)
+    strict = evaluate_results(tmp_path, EvalConfig(plots=False, turn_scale_min_deg=91), write=False)
+    assert strict.as_dict()["per_session"]["scene-a"]["odometry"]["turn_scale"] is None

@@ -14,6 +14,8 @@ from radarslam.eval.metrics import (
     pairs_for_delta,
     rpe,
     se2_between,
+    turn_scale,
+    turn_scale_of_steps,
 )
 from radarslam.geometry import se2_to_matrix
 
@@ -365,3 +367,51 @@ def test_clock_offsets_arguments():
         ate_clock_offsets(ref, t, ref, t * 1e-6)
     with pytest.raises(DataError, match="strictly increasing"):
         ate_clock_offsets(ref, t, ref, t[::-1])
+
+
+def _turning_drive(n=400):
+    """A drive along a straight, a 90 deg left turn, a straight and a 60 deg right turn."""
+    rate = np.zeros(n)
+    rate[50:150] = np.pi / 2 / 100
+    rate[250:330] = -np.pi / 3 / 80
+    yaw = np.concatenate([[0.0], np.cumsum(rate[:-1])])
+    xy = np.cumsum(np.column_stack([np.cos(yaw), np.sin(yaw)]), axis=0)
+    return np.column_stack([xy, yaw])
+
+
+def test_turn_scale_reads_a_turn_rate_scale_error_and_ignores_a_heading_offset():
+    ref = _turning_drive()
+    est = ref.copy()
+    est[:, 2] = 0.3 + 1.007 * ref[:, 2]  # turns 0.7 % too far, from a heading 0.3 rad off
+    res = turn_scale(est, ref)
+    assert res.scale == pytest.approx(1.007, abs=1e-12)
+    assert res.turned_deg == pytest.approx(150.0, abs=1e-9)
+    assert res.num_steps == len(ref) - 1
+    noisy = est.copy()
+    noisy[:, 2] += np.random.default_rng(3).normal(0, 0.002, len(ref))
+    assert turn_scale(noisy, ref).scale == pytest.approx(1.007, abs=0.003)
+    # turns too little on a drive of the other handedness too
+    mirrored = ref * [1, -1, -1]
+    est_m = mirrored.copy()
+    est_m[:, 2] = 0.99 * mirrored[:, 2]
+    assert turn_scale(est_m, mirrored).scale == pytest.approx(0.99, abs=1e-12)
+
+
+def test_turn_scale_is_nan_on_a_straight_drive_and_pools_steps_by_their_turn():
+    ref = _turning_drive()
+    straight = ref[:50]
+    res = turn_scale(straight + np.array([0, 0, 0.01]), straight)
+    assert np.isnan(res.scale) and res.turned_deg == 0.0
+    assert np.isnan(turn_scale(ref, ref, min_turn_deg=151.0).scale)
+    assert turn_scale(ref, ref, min_turn_deg=149.0).scale == 1.0
+    far = ref.copy()
+    far[:, 2] = 1.01 * ref[:, 2]
+    a, b = turn_scale(far, ref), turn_scale(ref, ref)
+    pooled = turn_scale_of_steps(
+        np.concatenate([a.steps[0], b.steps[0]]), np.concatenate([a.steps[1], b.steps[1]])
+    )
+    assert pooled.scale == pytest.approx(1.005, abs=1e-12)  # two drives with the same turns
+    with pytest.raises(DataError, match="truth steps against"):
+        turn_scale_of_steps(np.zeros(3), np.zeros(2))
+    with pytest.raises(DataError, match="minimum turn"):
+        turn_scale_of_steps(np.zeros(3), np.zeros(3), min_turn_deg=-1.0)
