@@ -160,15 +160,25 @@ def associate(
 # --- metrics -----------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class SessionErrors:
+    """A session's per-pose errors, kept for pooling over the run."""
+
+    ate_errors_m: np.ndarray  # SE(2)-aligned
+    first_errors_m: np.ndarray  # first poses made to coincide
+    turn_steps: tuple[np.ndarray, np.ndarray]  # TurnScaleResult.steps
+
+
 def trajectory_metrics(
     est: np.ndarray,
     ref: np.ndarray,
     t_us: np.ndarray,
     cfg: EvalConfig,
     ref_track: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[TrajectoryMetrics, np.ndarray]:
-    """Metrics of ``est`` against ``ref`` (associated pose by pose, stamps ``t_us``);
-    ``ref_track`` (stamps, poses): the whole ground truth, for the clock-offset search."""
+) -> tuple[TrajectoryMetrics, SessionErrors]:
+    """Metrics of ``est`` against ``ref`` (associated pose by pose, stamps ``t_us``) and the
+    errors they pool from; ``ref_track`` (stamps, poses): the whole ground truth, for the
+    clock-offset search."""
     a = ate(est, ref, align="se2")
     a_sim = ate(est, ref, align="sim2")
     clock = None
@@ -204,7 +214,7 @@ def trajectory_metrics(
     if clock is not None:
         m.clock_offset_ms = 1e3 * clock.best_offset_s
         m.ate_at_clock_offset_m = clock.best_rmse_m
-    return m, a.errors_m
+    return m, SessionErrors(a.errors_m, f.errors_m, turn.steps)
 
 
 def evaluate_results(
@@ -246,10 +256,10 @@ def evaluate_results(
             e, r, t = est_p[i_e], gt_p[i_g], est_t[i_e]
             m, errs = trajectory_metrics(e, r, t, cfg, (gt_t, gt_p))
             per_session[s][kind] = m
-            errors_t[s][kind] = ((t - t[0]) / 1e6, errs)
-            pooled[kind]["ate"].append(errs)
-            pooled[kind]["first"].append(ate(e, r, align="first").errors_m)
-            pooled[kind]["turn"].append(turn_scale(e, r).steps)
+            errors_t[s][kind] = ((t - t[0]) / 1e6, errs.ate_errors_m)
+            pooled[kind]["ate"].append(errs.ate_errors_m)
+            pooled[kind]["first"].append(errs.first_errors_m)
+            pooled[kind]["turn"].append(errs.turn_steps)
             # Odometry sessions start in frames of their own: placed on their ground-truth
             # first pose they share the world, and their joint ATE is the baseline of SLAM's.
             pooled[kind]["est"].append(r[0] @ invert(e[0]) @ e if kind == "odometry" else e)
