@@ -21,7 +21,8 @@ Per scene and pooled over scenes (ATE and RPE as RMS over all poses or pairs, dr
 length): ATE after SE(2) alignment and from the first pose, RPE translation over 1 s and 10 m,
 end-point drift (end position error from the first pose, % of the path), CPU ms per frame.
 Then the ATE split along and across the ground truth's heading, each method's scale (a
-similarity alignment: ground-truth length over the estimate's) and the ground truth's clock
+similarity alignment: ground-truth length over the estimate's; none for a scene that drives less
+than 10 m, as ``radarslam eval``'s ``scale_min_path_m``) and the ground truth's clock
 offset that fits best. Then the Doppler fit's heading over each scene against the ground truth,
 the key-frame NEES of ours (mean over key-frame motions; 3 is consistent) and ours' real-time
 factor on ``--jobs`` cores (CPU per frame with the sweeps' reading, and the tables' loading once
@@ -193,6 +194,7 @@ def _yaw(poses: np.ndarray) -> np.ndarray:
 
 def segment_metrics(r: dict, method: str) -> dict:
     from radarslam.eval import metrics as m
+    from radarslam.eval.evaluate import EvalConfig
 
     est, gt, t = r[method], r["gt"], r["t"]
     length = float(m.path_lengths_m(m.to_xy_yaw(gt))[-1])
@@ -209,8 +211,11 @@ def segment_metrics(r: dict, method: str) -> dict:
         "ate_m": aligned.rmse_m,
         "ate_along_m": aligned.along_rmse_m,
         "ate_cross_m": aligned.cross_rmse_m,
-        # ground-truth length / estimated length (Umeyama with scale): above 1, estimate short
-        "sim2_scale": scaled.alignment.scale,
+        # ground-truth length / estimated length (Umeyama with scale): above 1, estimate short;
+        # NaN on a drive too short for it to mean anything, as `radarslam eval` reports it
+        "sim2_scale": (
+            scaled.alignment.scale if length >= EvalConfig().scale_min_path_m else float("nan")
+        ),
         "clock_offset_ms": 1e3 * clock.best_offset_s if clock else float("nan"),
         "ate_clock_m": clock.best_rmse_m if clock else float("nan"),
         # the offsets, the squared ATE at each and the poses compared, to pool a common offset

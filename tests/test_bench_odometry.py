@@ -61,3 +61,22 @@ def test_segment_metrics_read_a_short_estimate_as_a_scale_above_one(odobench):
     assert row["ate_along_m"] > 0.01  # without the scale the shortfall shows along the track
     pooled = odobench.pooled([row, odobench.segment_metrics(_segment(odobench, 0.0), "ours")])
     assert 1.0 < pooled["sim2_scale"] < 1 / 0.997
+
+
+def test_a_scene_that_stands_leaves_the_pooled_scale_alone(odobench):
+    seg = _segment(odobench, 0.0)
+    seg["ours"] = seg["ours"].copy()
+    seg["ours"][:, :3, 3] *= 0.997
+    moving = odobench.segment_metrics(seg, "ours")
+    t_us = seg["t"]
+    rng = np.random.default_rng(5)
+    gt = np.tile(np.eye(4), (len(t_us), 1, 1))
+    gt[:, 0, 3] = np.linspace(0.0, 0.03, len(t_us))  # creeping 3 cm at a light
+    est = gt.copy()
+    est[:, :2, 3] += rng.normal(scale=0.002, size=(len(t_us), 2))
+    standing = odobench.segment_metrics(
+        {"t": t_us, "gt": gt, "ours": est, "ours_cpu_ms": 1.0}, "ours"
+    )
+    assert np.isnan(standing["sim2_scale"])
+    pooled = odobench.pooled([moving, standing])
+    assert pooled["sim2_scale"] == pytest.approx(1 / 0.997, rel=1e-9)

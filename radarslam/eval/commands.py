@@ -74,7 +74,8 @@ def print_report(report, results_dir: Path, cfg) -> None:
         ),
         (
             "scale of a similarity alignment (ground truth / estimate: above 1, the estimate is "
-            "short) and the ATE it leaves; turn scale (estimate's heading change / ground "
+            f"short; where the truth drives {cfg.scale_min_path_m:g} m or more) and the ATE it "
+            "leaves; turn scale (estimate's heading change / ground "
             f"truth's, step by step: above 1, it turns too far; where the truth turns "
             f"{cfg.turn_scale_min_deg:g} deg or more)",
             [

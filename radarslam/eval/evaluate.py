@@ -53,6 +53,9 @@ class EvalConfig(StrictModel):
     # The turn scale (the estimate's heading change per degree of the ground truth's) is
     # reported where the ground truth turns at least this much in all (summed |change|).
     turn_scale_min_deg: float = Field(45.0, ge=0, le=100_000)
+    # The similarity scale is reported where the ground truth drives at least this far: on a
+    # drive that stands, the estimate's length is noise and the ratio means nothing.
+    scale_min_path_m: float = Field(10.0, ge=0, le=1e7)
     loops: LoopEvalConfig = LoopEvalConfig()
     plots: bool = True
 
@@ -74,7 +77,8 @@ class TrajectoryMetrics:
     ate_along_m: float  # its share along the ground truth's heading (RMS)
     ate_cross_m: float  # and across it
     # Umeyama with scale (evo's correct_scale): ground-truth length / estimated length, above 1
-    # where the estimate is short (a speed-scale error, or a path that winds), and the ATE there
+    # where the estimate is short (a speed-scale error, or a path that winds), and the ATE there;
+    # the scale is NaN where the truth drives less than scale_min_path_m.
     sim2_scale: float
     ate_sim2_m: float
     # The estimate's heading change per unit of the ground truth's, fitted step by step (above
@@ -191,13 +195,14 @@ def trajectory_metrics(
     r_t = rpe(est, ref, t_us, delta=cfg.rpe_time_s, unit="s")
     r_d = rpe(est, ref, t_us, delta=cfg.rpe_distance_m, unit="m")
     dr = drift(est, ref, segment_lengths_m=cfg.drift_segment_lengths_m)
+    length_m = float(path_lengths_m(to_xy_yaw(ref))[-1])
     m = TrajectoryMetrics(
         num_poses=len(est),
-        path_length_m=float(path_lengths_m(to_xy_yaw(ref))[-1]),
+        path_length_m=length_m,
         ate_rmse_m=a.rmse_m,
         ate_along_m=a.along_rmse_m,
         ate_cross_m=a.cross_rmse_m,
-        sim2_scale=a_sim.alignment.scale,
+        sim2_scale=a_sim.alignment.scale if length_m >= cfg.scale_min_path_m else float("nan"),
         ate_sim2_m=a_sim.rmse_m,
         turn_scale=turn.scale,
         turned_deg=turn.turned_deg,

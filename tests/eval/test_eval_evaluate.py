@@ -230,6 +230,24 @@ def test_eval_reports_the_scale_of_a_short_estimate(tmp_path):
     assert data["slam"]["sim2_scale"] == pytest.approx(1.0, abs=1e-12)
 
 
+def test_eval_gives_no_scale_for_a_drive_that_stands(tmp_path):
+    ts = 1_600_000_000_000_000 + np.arange(0, 10_000_000, 50_000, dtype=np.int64)
+    rng = np.random.default_rng(3)
+    # waiting at a light: the truth creeps 3 cm, the estimate jitters by a few millimetres
+    gt = np.stack([se2_to_matrix(0.003 * t, 0.0, 0.0) for t in (ts - ts[0]) * 1e-6])
+    jitter = np.stack([g @ se2_to_matrix(*rng.normal(scale=[0.003, 0.003, 1e-4])) for g in gt])
+    write_results(tmp_path, [SessionResult("scene-a", ts, gt.copy(), jitter, gt)])
+    report = evaluate_results(tmp_path, EvalConfig(plots=False))
+    odo = report.per_session["scene-a"]["odometry"]
+    assert np.isnan(odo.sim2_scale)
+    assert np.isfinite(odo.ate_sim2_m) and odo.ate_sim2_m < 0.01
+    data = json.loads((tmp_path / "metrics.json").read_text())["per_session"]["scene-a"]
+    assert data["odometry"]["sim2_scale"] is None
+    # with the minimum lowered below the creep, the ratio of noise to noise comes out
+    loose = evaluate_results(tmp_path, EvalConfig(plots=False, scale_min_path_m=0.0), write=False)
+    assert np.isfinite(loose.per_session["scene-a"]["odometry"].sim2_scale)
+
+
 def test_eval_reports_how_far_the_estimate_turns(tmp_path):
     ts = 1_600_000_000_000_000 + np.arange(0, 20_000_000, 50_000, dtype=np.int64)
     t = (ts - ts[0]) * 1e-6
