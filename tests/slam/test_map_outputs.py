@@ -163,3 +163,29 @@ def test_static_map_refuses_points_beyond_exact_voxel_indices():
     builder.add(np.eye(4), np.array([[1.0, 2.0, 0.0], [1e30, 2.0, 0.0]]))
     with pytest.raises(DataError, match=r"static map: point \[1e\+30, 2\.0, 0\.0\] m is too far"):
         builder.build()
+
+
+def test_static_map_summed_chunk_by_chunk_is_the_map_of_all_points(monkeypatch):
+    import radarslam.slam.map as map_module
+
+    rng = np.random.default_rng(11)
+    clouds = []
+    for k in range(40):
+        xy = rng.uniform(-20, 20, (int(rng.integers(0, 60)), 2))
+        pts = _cloud(xy, rng.normal(0, 0.3, len(xy)))
+        pts["rcs"] = np.where(rng.uniform(size=len(xy)) < 0.2, np.nan, rng.normal(5, 3, len(xy)))
+        clouds.append((se2_to_matrix(0.3 * k, -0.1 * k, 0.02 * k), pts))
+
+    def build(chunk_points):
+        monkeypatch.setattr(map_module, "_CHUNK_POINTS", chunk_points)
+        b = StaticMapBuilder(StaticMapConfig(voxel_size_m=1.0, min_points_per_voxel=2))
+        for pose, pts in clouds:
+            b.add(pose, pts)
+        return b, b.build()
+
+    one_go = build(10**9)[1]
+    builder, chunked = build(37)
+    assert builder._voxels is not None and len(one_go) > 50
+    np.testing.assert_array_equal(chunked.hits, one_go.hits)
+    np.testing.assert_allclose(chunked.xyz, one_go.xyz, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(chunked.rcs, one_go.rcs, rtol=0, atol=1e-12, equal_nan=True)

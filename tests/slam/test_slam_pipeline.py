@@ -1133,3 +1133,17 @@ def test_scenes_sharing_their_boundary_frame_are_driven_once(sim_dataroot):
     first, second = (pipeline.sessions[n] for n in names)
     assert second.timestamps_us[0] > first.timestamps_us[-1]
     assert len(res.components) == 1
+
+
+def test_free_memory_goes_back_to_the_system_as_key_frames_accumulate(reader, scenes, monkeypatch):
+    import radarslam.slam.pipeline as pipeline
+
+    calls = []
+    monkeypatch.setattr(pipeline, "release_free_memory", lambda: calls.append(1) or True)
+    monkeypatch.setattr(pipeline, "RELEASE_MEMORY_EVERY_KEY_FRAMES", 7)
+    cfg = SlamConfig()
+    cfg.loops.enabled = False
+    res = SlamPipeline(reader, cfg, progress=False).run(scenes)
+    key_frames = sum(len(s.timestamps_us) for s in res.sessions)
+    assert key_frames >= 14
+    assert len(calls) == key_frames // 7
