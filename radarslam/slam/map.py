@@ -26,10 +26,9 @@ class StaticMapConfig(StrictModel):
 #: in int64.
 _MAX_CELL = 2.0**52
 
-#: Points kept as they came before they are summed per voxel. A whole city's key frames carry
-#: millions of points; summed chunk by chunk, the map needs memory for its voxels and one chunk
-#: (on the 96-scene city: 7.6 M points, a build that peaked 0.8 GB above the run now adds
-#: about 0.1 GB).
+#: Points kept as they came before they are summed per voxel. A city's key frames carry millions
+#: of points (2.5 M on the 32-scene city subset); summed chunk by chunk, the map needs memory
+#: for its voxels and one chunk, not for every point and its cell at once.
 _CHUNK_POINTS = 1 << 19
 
 
