@@ -38,9 +38,4 @@ def simulate_command(
         overwrite=overwrite,
         trajectory_tum=trajectory,
     )
-    typer.echo(
-        f"wrote {s.dataroot} ({s.version}): {s.n_logs} logs on {s.n_days} days, "
-        f"{s.n_scenes} scenes, {s.n_samples} key frames, {s.n_sweeps} radar sweeps, "
-        f"{s.n_points} points, {s.bytes_written / 1e6:.1f} MB in {s.seconds:.1f} s "
-        f"({s.sweeps_per_s:.0f} sweeps/s)"
-    )
+    typer.echo(s.describe())

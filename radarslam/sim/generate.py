@@ -82,6 +82,15 @@ class SimulationSummary:
     def sweeps_per_s(self) -> float:
         return self.n_sweeps / max(self.seconds, 1e-9)
 
+    def describe(self) -> str:
+        """One line for the user: what was written, where, how fast."""
+        return (
+            f"wrote {self.dataroot} ({self.version}): {self.n_logs} logs on {self.n_days} days, "
+            f"{self.n_scenes} scenes, {self.n_samples} key frames, {self.n_sweeps} radar sweeps, "
+            f"{self.n_points} points, {self.bytes_written / 1e6:.1f} MB in {self.seconds:.1f} s "
+            f"({self.sweeps_per_s:.0f} sweeps/s)"
+        )
+
 
 def is_complete(dataroot: str | Path, version: str) -> bool:
     """True when a generation run finished (its summary is written after every table)."""

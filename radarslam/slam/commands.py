@@ -280,7 +280,7 @@ def ensure_synthetic(preset: str, dataroot: Path, progress: bool) -> str:
     version = load_sim_config(preset).output.version
     if not is_complete(dataroot, version):
         summary = simulate(preset, dataroot, progress=progress)
-        typer.echo(str(summary), err=True)
+        typer.echo(summary.describe(), err=True)
     return version
 
 

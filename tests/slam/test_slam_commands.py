@@ -72,17 +72,26 @@ def test_run_over_two_cars_reports_each_rigs_calibration(real_dataroot, tmp_path
     assert "passes" not in summary["doppler_calibration"]
 
 
-def test_synthetic_dataset_is_generated_once(tmp_path, monkeypatch):
+def test_synthetic_dataset_is_generated_once(tmp_path, monkeypatch, capsys):
+    from radarslam.sim.generate import SimulationSummary
     from radarslam.slam import commands
 
     calls = []
+    summary = SimulationSummary(
+        str(tmp_path / "d"), "v1.0-mini", "demo", 11, 3, 3, 6, 240, 7710, 676688, 47_741_835, 10.9
+    )
     monkeypatch.setattr(
-        "radarslam.sim.generate.simulate", lambda *a, **k: calls.append(a) or "generated"
+        "radarslam.sim.generate.simulate", lambda *a, **k: calls.append(a) or summary
     )
     monkeypatch.setattr("radarslam.sim.generate.is_complete", lambda root, version: bool(calls))
     assert commands.ensure_synthetic("demo", tmp_path / "d", False) == "v1.0-mini"
     assert commands.ensure_synthetic("demo", tmp_path / "d", False) == "v1.0-mini"
     assert len(calls) == 1
+    # one line for the user, the same as `radarslam simulate` prints, not the record's repr
+    err = capsys.readouterr().err.strip()
+    assert err == summary.describe()
+    assert err.startswith(f"wrote {tmp_path / 'd'} (v1.0-mini): 3 logs on 3 days, 6 scenes")
+    assert "47.7 MB in 10.9 s (707 sweeps/s)" in err
 
 
 def test_missing_dataroot_is_one_line_error(tmp_path):
