@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -178,6 +179,9 @@ def calibration_pass(
 def _calibration_process(estimate: Callable[[], CalibrationPassResult], results, parent) -> None:
     try:
         helper_process_setup(parent)
+        # Every scene the pass reads, the run reads again in its own process and reports (empty
+        # sweeps, broken prev/next chains): the reader's once-per-scene notes would come twice.
+        logging.getLogger("radarslam.nuscenes").setLevel(logging.ERROR)
         results.put(estimate())
     except BaseException as exc:  # handed to the parent, which raises it
         put_error(results, exc, "calibration pass process")

@@ -12,6 +12,7 @@ from radarslam.nuscenes.reader import NuScenesRadar
 from radarslam.odometry.config import OdometryConfig
 from radarslam.slam.calibration_pass import (
     PASS_PROJECTION_SLACK,
+    CalibrationPassResult,
     count_rigs,
     estimate_calibration,
 )
@@ -176,3 +177,29 @@ def test_a_continued_scene_skips_the_frames_already_driven(monkeypatch):
     driven.clear()
     estimate_calibration(Overlapping(), _scenes(3), second, None, None)
     assert driven == [0, 2_000_000]
+
+
+def test_the_forked_pass_leaves_the_readers_notes_to_the_run(monkeypatch, capfd):
+    import logging
+    import sys
+
+    from radarslam.slam import calibration_pass as cp
+
+    def estimate(*args, **kwargs):
+        logging.getLogger("radarslam.nuscenes").warning("scene-0000: 1 empty sweep(s) yielded")
+        logging.getLogger("radarslam.slam").warning("a note of the pass itself")
+        return CalibrationPassResult({}, True, 1, 1)
+
+    monkeypatch.setattr(cp, "estimate_calibration", estimate)
+    handler = logging.StreamHandler(sys.stderr)  # as the CLI's: the forked pass inherits it
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        result = cp.calibration_pass(None, _scenes(1), None, None, 0.1, forked=True)
+    finally:
+        root.removeHandler(handler)
+    err = capfd.readouterr().err
+    assert result == CalibrationPassResult({}, True, 1, 1)
+    assert "a note of the pass itself" in err
+    assert "empty sweep" not in err
+    assert logging.getLogger("radarslam.nuscenes").getEffectiveLevel() <= logging.WARNING
