@@ -443,6 +443,7 @@ def main() -> None:
         "accepted_recognition": sum(lp.source == "recognition" for lp in result.accepted_loops),
         "accepted_proximity": sum(lp.source == "proximity" for lp in result.accepted_loops),
         "accepted_reversed": sum(lp.source == "reversed" for lp in result.accepted_loops),
+        "accepted_merge": sum(lp.source.startswith("merge") for lp in result.accepted_loops),
         "loop_precision": loops.get("precision"),
         "loop_recall": loops.get("recall"),
         "wall_s": wall,
@@ -530,9 +531,9 @@ def main() -> None:
          f"{rows['ate_slam_revisited_m'] / max(rows['ate_odometry_revisited_m'], 1e-9):.2f}"
          if rows["revisited_fraction"] > 0 else "n/a (no revisit)", ""),
         ("loops verified / accepted", f"{rows['loops_verified']} / {rows['loops_accepted']}", ""),
-        ("loops accepted by source (recognition / proximity / reversed)",
+        ("loops accepted by source (recognition / proximity / reversed / merge search)",
          f"{rows['accepted_recognition']} / {rows['accepted_proximity']} / "
-         f"{rows['accepted_reversed']}", ""),
+         f"{rows['accepted_reversed']} / {rows['accepted_merge']}", ""),
         ("loop precision", f"{_fmt(rows['loop_precision'])} ({loops.get('num_correct')} correct of "
          f"{loops.get('num_accepted')})", "1.0"),
         ("loop recall (GT revisits with a correct loop)",

@@ -55,6 +55,10 @@ ALTERNATIVES: dict[str, tuple[str, list[str]]] = {
         "no turned AutoPlace queries (streets driven the other way)",
         ["loops.reversed_search=false"],
     ),
+    "no-merge-search": (
+        "no AutoPlace queries among the other groups once a session closes its own loops",
+        ["loops.merge_search_every=null"],
+    ),
     "no-same-log-speed": (
         "scenes of one log may be linked any distance apart",
         ["loops.same_log_max_speed_mps=null"],

@@ -98,6 +98,19 @@ class LoopDetectionConfig(StrictModel):
     reversed_search: bool = True
     reversed_every: int = Field(6, ge=1)
     reversed_heading_range_deg: float = Field(60.0, gt=0, le=360)
+    #: Map merging. Once a session closes loops in its own group, recognition stops looking
+    #: beyond it: its best matches are the group's other passes of the same street, and the
+    #: proximity loops that then close every key frame hold recognition off
+    #: (``min_key_frames_between_loops``). So every ``merge_search_every``-th key frame of a
+    #: session, while other groups exist, AutoPlace is also queried among the key frames of the
+    #: other groups only, with the key frame's images as they are and turned by 180 deg (with
+    #: ``reversed_search``), whatever closed the key frame; the best match of each query goes to
+    #: the global search (within ``max_descriptor_distance`` for the plain one) and, accepted, is
+    #: a vote between the two groups. None: off.
+    merge_search_every: int | None = Field(6, ge=1)
+    #: The merge search's best match among the other groups is there whether they hold the
+    #: place or not, so its registrations must pass a tighter ``min_tight_fitness``.
+    merge_min_tight_fitness: float = Field(0.15, ge=0.0, le=1.0)
     #: A new session joins the map only after this many loops agree on where it is: placed by
     #: each loop, the loops' key frames land within ``link_consistency_m`` of each other (and
     #: the headings within ``link_consistency_deg``). Along a straight street the global search

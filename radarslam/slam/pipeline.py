@@ -26,19 +26,25 @@
       ``proximity_radius_m`` of the predicted pose is registered from that prediction (ICP only).
       Recognition links sessions; proximity then closes a loop at nearly every revisiting key
       frame, which is what pulls the whole session onto the map;
-   g. accepted loops become robust factors; iSAM2 receives only the new factors and values.
+   g. **merge search**, whatever closed the key frame, every ``merge_search_every``-th key frame
+      while other groups exist: AutoPlace queried (plain and turned) among the key frames of the
+      other groups only, the best match of each verified (tighter) and, accepted, a vote between
+      the groups. Once a session closes loops in its own group, its recognition finds the group's
+      own passes first and its proximity loops hold recognition off, so without it groups that
+      overlap would stay apart;
+   h. accepted loops become robust factors; iSAM2 receives only the new factors and values.
 3. A final batch Levenberg-Marquardt, the static map, and the results folder.
 
 Where each part lives: the odometry side (step 1) in :mod:`radarslam.slam.feed`, the helper
 processes it runs in with ``pipelined`` in :mod:`radarslam.slam.processes`, the calibration pass
 in :mod:`radarslam.slam.calibration_pass`; the sessions, groups and key frames in
-:mod:`radarslam.slam.state`; the candidate sources (2c, 2e, 2f) in :mod:`radarslam.slam.proposers`;
+:mod:`radarslam.slam.state`; the candidate sources (2c, 2e-2g) in :mod:`radarslam.slam.proposers`;
 the verifier variants and predictions (2d) in :mod:`radarslam.slam.verification`; votes and merges
-in :mod:`radarslam.slam.linking`; factors into the graph (2b, 2g) in
+in :mod:`radarslam.slam.linking`; factors into the graph (2b, 2h) in
 :mod:`radarslam.slam.insertion`; the result in :mod:`radarslam.slam.result`. This module holds
 them together.
 
-Step 1 (and the key-frame clouds) never depends on steps 2b-2g, so with ``pipelined`` (default)
+Step 1 (and the key-frame clouds) never depends on steps 2b-2h, so with ``pipelined`` (default)
 it runs in a forked process that streams key-frame clouds to this one: on two cores odometry and
 loop closure overlap, with identical results.
 
@@ -88,6 +94,7 @@ from radarslam.slam.linking import SessionLinker
 from radarslam.slam.processes import can_fork
 from radarslam.slam.proposers import (
     CandidateProposer,
+    MergeProposer,
     Proposal,
     ProximityProposer,
     RecognitionProposer,
@@ -151,12 +158,13 @@ class SlamPipeline:
             cfg, self.state, self.verification, self.insertion, self._catch_up
         )
         self._proximity = ProximityProposer(cfg, self.state, self.verification.placed)
-        #: Asked in this order for every key frame; each one after the first only proposes
-        #: when nothing closed the key frame yet.
+        #: Asked in this order for every key frame; the turned and proximity searches only
+        #: propose when nothing closed the key frame yet, the merge search whatever did.
         self.proposers: list[CandidateProposer] = [
             RecognitionProposer(cfg, self.state, lambda: self.recognizer, self.timings),
             TurnedProposer(cfg, self.state, lambda: self.recognizer, self.timings),
             self._proximity,
+            MergeProposer(cfg, self.state, lambda: self.recognizer, self.timings),
         ]
         self._recognizer = recognizer
         #: The shipped (or configured) recognizer is loaded on first use, in run() once the
@@ -422,9 +430,13 @@ class SlamPipeline:
         t0 = time.perf_counter()
         booked = self.timings.place_recognition_s  # the proposers book their descriptor time
         closed = False
+        verified: set[tuple[NodeKey, str]] = set()  # a candidate two proposers found: once
         for proposer in self.proposers:
             accepted = False
             for proposal in proposer.propose(session, kf, cloud, closed):
+                if (proposal.candidate.key, proposal.search) in verified:
+                    continue
+                verified.add((proposal.candidate.key, proposal.search))
                 accepted |= self.verify(session, kf, proposal)
             proposer.settle(session, kf, accepted)
             closed |= accepted

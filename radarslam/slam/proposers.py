@@ -57,6 +57,14 @@ class Proposal:
     verifier: str | None = None
     hint: np.ndarray | None = None  # where the search starts without a prediction
 
+    @property
+    def search(self) -> str:
+        """The kind of registration search it gets: ``global``, ``turned`` or ``proximity``
+        (a candidate proposed twice in one key frame is verified once per kind)."""
+        if self.verifier in ("turned", "merge_turned"):
+            return "turned"
+        return "proximity" if self.verifier == "proximity" else "global"
+
 
 class CandidateProposer(Protocol):
     def propose(
@@ -159,6 +167,65 @@ class TurnedProposer:
             )
             for c in candidates
         ]
+
+    def settle(self, session, kf, accepted):
+        pass
+
+
+class MergeProposer:
+    """Map merging (``loops.merge_search_every``): every N-th key frame of a session, while
+    other groups exist, AutoPlace queried among the key frames of the other groups only, plain
+    and turned by 180 deg (``loops.reversed_search``), whatever closed the key frame in its own
+    group. The best match of each query goes to the global search; accepted, it is a vote
+    between the two groups (:class:`~radarslam.slam.linking.SessionLinker`)."""
+
+    def __init__(
+        self, config: SlamConfig, state: MapState, recognizer: Callable, timings: SlamTimings
+    ) -> None:
+        self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
+
+    def propose(self, session, kf, cloud, closed):
+        cfg = self.config.loops
+        every = cfg.merge_search_every
+        if (
+            every is None
+            or len(self.state.groups) < 2
+            or kf.key.index < self.config.key_frames.local_map_neighbors
+            or kf.key.index - session.last_merge_kf < every
+        ):
+            return []
+        session.last_merge_kf = kf.key.index
+        t0 = time.perf_counter()
+        rec = self.recognizer()
+        sessions, group = self.state.sessions, session.group
+        recent = self.state.excluded(kf)
+
+        def exclude(key: NodeKey) -> bool:
+            return sessions[key.session].group == group or recent(key)
+
+        # the recognizer caches each image's features: only the turned ones are new
+        sequence = self.state.sequence(session, cloud, rec.seq_len)
+        desc, rcs = rec.describe(sequence)
+        proposals = [
+            Proposal(self.state.key_frame(c.key), c.descriptor_distance, "merge", verifier="merge")
+            for c in rec.query_descriptor(desc, rcs, k=1, exclude=exclude)
+            if cfg.max_descriptor_distance is None
+            or c.descriptor_distance <= cfg.max_descriptor_distance
+        ]
+        if cfg.reversed_search:
+            desc, rcs = rec.describe([turned_cloud(c) for c in sequence])
+            proposals += [
+                Proposal(
+                    self.state.key_frame(c.key),
+                    c.descriptor_distance,
+                    "merge-reversed",
+                    verifier="merge_turned",
+                    hint=HALF_TURN,
+                )
+                for c in rec.query_descriptor(desc, rcs, k=1, exclude=exclude)
+            ]
+        self.timings.place_recognition_s += time.perf_counter() - t0
+        return proposals
 
     def settle(self, session, kf, accepted):
         pass

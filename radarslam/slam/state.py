@@ -69,6 +69,7 @@ class Session:
     world_from_session: np.ndarray | None = None  # where the chain was put in the map
     last_loop_kf: int = -(10**9)
     last_reversed_kf: int = -(10**9)  # the last key frame that ran the turned search
+    last_merge_kf: int = -(10**9)  # the last key frame that searched the other groups
     timestamps_us: list[int] = field(default_factory=list)  # of the key frames, increasing
     #: the dataset log (one vehicle's one drive) the scene was cut from; "" when unknown
     log: str = ""

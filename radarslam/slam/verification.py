@@ -37,6 +37,10 @@ class Verifiers:
     proximity: object
     #: turned-image candidates: the global search over headings near a half turn
     turned: object
+    #: the merge search's candidates (``recognition`` and ``turned``, tighter): it always finds
+    #: a best match among the other groups, whether they hold the place or not
+    merge: object
+    merge_turned: object
 
     @classmethod
     def from_config(cls, cfg) -> Verifiers:
@@ -66,11 +70,14 @@ class Verifiers:
         turned = lv.model_copy(
             update={"heading_range_deg": cfg.loops.reversed_heading_range_deg, "refine_top_k": 1}
         )
+        tight = {"min_tight_fitness": cfg.loops.merge_min_tight_fitness}
         return cls(
             recognition=LoopVerifier(lv),
             guided=LoopVerifier(guided),
             proximity=LoopVerifier(proximity),
             turned=LoopVerifier(turned),
+            merge=LoopVerifier(lv.model_copy(update=tight)),
+            merge_turned=LoopVerifier(turned.model_copy(update=tight)),
         )
 
 

@@ -647,6 +647,90 @@ def test_reversed_search_can_be_switched_off(reader, scenes, recognizer):
     assert sum(encoded) == res.timings.key_frames
 
 
+def _merge_search_run(reader, scenes, accept, every=3, **loops):
+    """A scripted run (``accept`` for every verifier but proximity) whose recognition is held
+    off by a long loop spacing once a loop is accepted, so that only the merge search looks
+    across sessions. Returns (pipeline, result, what the merge search proposed per key frame)."""
+    from radarslam.slam.proposers import MergeProposer
+
+    loops = {"min_key_frames_between_loops": 1000, "merge_search_every": every, **loops}
+    pipeline = _scripted_pipeline(reader, accept, **loops)
+    scripted = pipeline.verifiers.recognition
+    pipeline.verifiers.merge = pipeline.verifiers.merge_turned = scripted
+    pipeline.verifiers.turned = pipeline.verifiers.proximity = scripted
+    (merge,) = [p for p in pipeline.proposers if isinstance(p, MergeProposer)]
+    proposed = []
+    propose = merge.propose
+
+    def spy(session, kf, cloud, closed):
+        out = propose(session, kf, cloud, closed)
+        if out:
+            proposed.append((kf.key, out))
+        return out
+
+    merge.propose = spy
+    return pipeline, pipeline.run(scenes), proposed
+
+
+def test_merge_search_queries_the_other_groups_every_nth_key_frame(reader, scenes):
+    first, second = scenes
+    pipeline, _, proposed = _merge_search_run(reader, scenes, lambda *_: None)
+    assert proposed, "two groups: the second session searches the first"
+    for key, proposals in proposed:
+        # only the other group's key frames are candidates; never its own session's
+        assert key.session == second and key.index >= pipeline.config.key_frames.local_map_neighbors
+        assert [p.candidate.key.session for p in proposals] == [first, first]
+        assert [(p.source, p.verifier) for p in proposals] == [
+            ("merge", "merge"),
+            ("merge-reversed", "merge_turned"),
+        ]
+    # every 3rd key frame of the session, whether anything closed it or not
+    assert {b[0].index - a[0].index for a, b in pairwise(proposed)} == {3}
+    _, _, plain = _merge_search_run(reader, scenes, lambda *_: None, reversed_search=False)
+    assert [[p.source for p in ps] for _, ps in plain] == [["merge"]] * len(plain)
+
+
+def test_merge_search_links_sessions_that_recognition_no_longer_queries(reader, scenes):
+    # Recognition's first accepted vote holds it off for the rest of the run (a loop spacing
+    # longer than the run): one vote links nothing, and the merge search finds the second.
+    _, second = scenes
+
+    def accept(pipeline, q, c):
+        return _true_pose(pipeline, q, c) if q.session == second else None
+
+    _, res, _ = _merge_search_run(reader, scenes, accept, reversed_search=False)
+    votes = [lp for lp in res.accepted_loops if lp.query.session == second]
+    assert [lp.source for lp in votes[:2]] == ["recognition", "merge"]
+    assert len(res.components) == 1
+    _, off, _ = _merge_search_run(reader, scenes, accept, merge_search_every=None)
+    assert not [lp for lp in off.loops if lp.source.startswith("merge")]
+    assert len(off.components) == 2
+
+
+def test_a_candidate_two_proposers_find_is_verified_once(reader, scenes):
+    # Recognition proposes every earlier key frame; the merge search's best match is one of
+    # them: the same global search is not run twice for one key frame.
+    _, res, proposed = _merge_search_run(
+        reader, scenes, lambda *_: None, min_key_frames_between_loops=0, reversed_search=False
+    )
+    assert proposed
+    pairs = [(lp.query, lp.candidate) for lp in res.loops if lp.source != "proximity"]
+    assert len(pairs) == len(set(pairs))
+    assert not [lp for lp in res.loops if lp.source == "merge"]
+
+
+def test_merge_search_registrations_pass_a_tighter_fitness():
+    cfg = SlamConfig()
+    cfg.loops.merge_min_tight_fitness = 0.2
+    from radarslam.slam.verification import Verifiers
+
+    v = Verifiers.from_config(cfg)
+    assert v.merge.config.min_tight_fitness == 0.2
+    assert v.merge_turned.config.min_tight_fitness == 0.2
+    assert v.recognition.config.min_tight_fitness == cfg.backend.loop_verification.min_tight_fitness
+    assert v.merge_turned.config.heading_range_deg == cfg.loops.reversed_heading_range_deg
+
+
 def test_turned_cloud_is_the_same_world_seen_half_a_turn_round():
     from radarslam.slam.proposers import turned_cloud
     from radarslam.types import ACCUMULATED_DTYPE, AccumulatedCloud
@@ -1031,6 +1115,7 @@ def test_autoplace_queries_every_key_frame_until_a_loop_is_accepted(reader, scen
     # is queried at every key frame as a moving one is.
     cfg = SlamConfig(pipelined=False)
     cfg.loops.reversed_search = False
+    cfg.loops.merge_search_every = None
     counting = _CountingQueries()
     pipeline = SlamPipeline(reader, cfg, recognizer=counting, progress=False)
     res = pipeline.run(scenes)
