@@ -55,9 +55,9 @@ ALTERNATIVES: dict[str, tuple[str, list[str]]] = {
         "no turned AutoPlace queries (streets driven the other way)",
         ["loops.reversed_search=false"],
     ),
-    "no-merge-search": (
-        "no AutoPlace queries among the other groups once a session closes its own loops",
-        ["loops.merge_search_every=null"],
+    "merge-search": (
+        "(adds) AutoPlace queries among the other groups every 6th key frame, map merging",
+        ["loops.merge_search_every=6"],
     ),
     "no-same-log-speed": (
         "scenes of one log may be linked any distance apart",

@@ -106,8 +106,11 @@ class LoopDetectionConfig(StrictModel):
     #: other groups only, with the key frame's images as they are and turned by 180 deg (with
     #: ``reversed_search``), whatever closed the key frame; the best match of each query goes to
     #: the global search (within ``max_descriptor_distance`` for the plain one) and, accepted, is
-    #: a vote between the two groups. None: off.
-    merge_search_every: int | None = Field(6, ge=1)
+    #: a vote between the two groups. None: off. With 6 it joins groups the default leaves
+    #: apart (the city subset's map: 3 of 32 sessions -> 11) but also lets a look-alike
+    #: street link a session at the wrong place on another city (docs/results.md, settings
+    #: table).
+    merge_search_every: int | None = Field(None, ge=1)
     #: The merge search's best match among the other groups is there whether they hold the
     #: place or not, so its registrations must pass a tighter ``min_tight_fitness``.
     merge_min_tight_fitness: float = Field(0.15, ge=0.0, le=1.0)
