@@ -118,6 +118,16 @@ def print_report(report, results_dir: Path, cfg) -> None:
                         _fmt(d["ate_first_rmse_m"]), _fmt(d["ate_joint_rmse_m"]),
                         _fmt(d["turn_scale"], 4))  # fmt: skip
         console.print(run)
+        comps = {kind: d.get("components_joint") or [] for kind, d in report.run.items()}
+        if max(len(c) for c in comps.values()) > 1:
+            table = Table(title="map components of several sessions, each aligned on its own")
+            for name in ("component", "sessions", *(f"ATE m (joint) {k}" for k in comps)):
+                table.add_column(name, justify="right")
+            first = next(c for c in comps.values() if c)
+            for i, comp in enumerate(first):
+                cells = [_fmt(c[i]["ate_joint_rmse_m"]) for c in comps.values()]
+                table.add_row(str(comp["component"]), str(len(comp["sessions"])), *cells)
+            console.print(table)
     if report.loops is not None:
         lm = report.loops.as_dict()
         console.print(

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -108,7 +109,8 @@ class EvalReport:
     results_dir: Path
     sessions: list[str]
     per_session: dict[str, dict[str, TrajectoryMetrics]]  # session -> kind -> metrics
-    run: dict[str, dict[str, float | None]]  # kind -> pooled numbers (None: nothing to pool)
+    #: kind -> pooled numbers (None: nothing to pool), and ``components_joint``: a list
+    run: dict[str, dict[str, Any]]
     loops: LoopMetrics | None
     config: EvalConfig
     kind: str = "slam"  # of the results folder: slam or odometry
@@ -270,7 +272,7 @@ def evaluate_results(
             pooled[kind]["est"].append(r[0] @ invert(e[0]) @ e if kind == "odometry" else e)
             pooled[kind]["ref"].append(r)
             pooled[kind].setdefault("session", []).append(s)
-    run: dict[str, dict[str, float | None]] = {}
+    run: dict[str, dict[str, Any]] = {}
     for kind in KINDS:
         p = pooled[kind]
         if not p["ate"]:
@@ -285,13 +287,31 @@ def evaluate_results(
             for i, s in enumerate(p["session"])
             if folder.components is None or s in folder.components[0]
         ]
-        joint_rmse_m = None  # nothing to align jointly
-        if in_joint:
-            joint_rmse_m = ate(
-                np.concatenate([p["est"][i] for i in in_joint]),
-                np.concatenate([p["ref"][i] for i in in_joint]),
+
+        def joint(rows: list[int], p: dict = p) -> float | None:
+            if not rows:
+                return None  # nothing to align jointly
+            return ate(
+                np.concatenate([p["est"][i] for i in rows]),
+                np.concatenate([p["ref"][i] for i in rows]),
                 align="se2",
             ).rmse_m
+
+        joint_rmse_m = joint(in_joint)
+        # Each component of several sessions aligned on its own: whether the sessions a run
+        # linked outside the anchored map agree with each other (the odometry over the same
+        # sessions, each started on its ground truth, is the baseline).
+        by_component = []
+        for index, comp in enumerate(folder.components or []):
+            rows = [i for i, s in enumerate(p["session"]) if s in comp]
+            if len(rows) >= 2:
+                by_component.append(
+                    {
+                        "component": index,
+                        "sessions": [p["session"][i] for i in rows],
+                        "ate_joint_rmse_m": joint(rows),
+                    }
+                )
         run[kind] = {
             "num_sessions": len(p["ate"]),
             "num_poses": int(all_err.size),
@@ -304,6 +324,7 @@ def evaluate_results(
                 cfg.turn_scale_min_deg,
             ).scale,
             "joint_sessions": len(in_joint),
+            "components_joint": by_component,
         }
     loop_metrics = None
     if folder.loops_path is not None:

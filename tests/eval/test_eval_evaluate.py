@@ -162,6 +162,34 @@ def test_associate_nearest_within_tolerance():
     assert list(i_e) == [0, 1, 3] and list(i_g) == [1, 3, 0]
 
 
+def test_every_component_of_several_sessions_gets_its_own_joint_ate(tmp_path):
+    # "b" and "c" were linked to each other but not to the map: together they live in one frame
+    # of their own (500 m away and turned), so aligned on their own they agree; "c" is also
+    # 0.3 m off across its track there, which that joint ATE must show.
+    t = np.arange(20, dtype=np.int64) * 500_000 + 1_000_000
+    gt_a = np.stack([se2_to_matrix(0.5 * i, 0.0, 0.0) for i in range(20)])
+    gt_b = np.stack([se2_to_matrix(0.0, 0.5 * i, np.pi / 2) for i in range(20)])
+    gt_c = np.stack([se2_to_matrix(5.0, 0.5 * i, np.pi / 2) for i in range(20)])
+    off = se2_to_matrix(500.0, -300.0, 1.0)
+    shifted = np.stack([g @ se2_to_matrix(0.0, 0.3, 0.0) for g in gt_c])
+    sessions = [
+        SessionResult("a", t, gt_a.copy(), gt_a.copy(), gt_a),
+        SessionResult("b", t + 20_000_000, off @ gt_b, gt_b.copy(), gt_b),  # slam, odometry
+        SessionResult("c", t + 40_000_000, off @ shifted, gt_c.copy(), gt_c),
+    ]
+    write_results(tmp_path, sessions, components=[["a"], ["b", "c"]], plots=False)
+    run = evaluate_results(tmp_path, EvalConfig(plots=False)).run
+    (comp,) = run["slam"]["components_joint"]  # "a" alone has none of its own
+    assert comp["component"] == 1 and comp["sessions"] == ["b", "c"]
+    expected = ate(np.concatenate([gt_b, shifted]), np.concatenate([gt_b, gt_c]), align="se2")
+    assert comp["ate_joint_rmse_m"] == pytest.approx(expected.rmse_m)
+    assert 0.1 < comp["ate_joint_rmse_m"] < 0.3
+    # the odometry over the same sessions, each started on its ground truth: no error here
+    (odo,) = run["odometry"]["components_joint"]
+    assert odo["sessions"] == ["b", "c"] and odo["ate_joint_rmse_m"] < 1e-6
+    assert run["slam"]["joint_sessions"] == 1
+
+
 def test_slam_joint_ate_covers_the_anchored_map_only(tmp_path):
     # Session "b" never joined the map: its SLAM poses live in their own frame (here 500 m away
     # and rotated). The joint SLAM ATE must cover the anchored component only.
