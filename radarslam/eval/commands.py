@@ -123,10 +123,14 @@ def print_report(report, results_dir: Path, cfg) -> None:
             table = Table(title="map components of several sessions, each aligned on its own")
             for name in ("component", "sessions", *(f"ATE m (joint) {k}" for k in comps)):
                 table.add_column(name, justify="right")
-            first = next(c for c in comps.values() if c)
-            for i, comp in enumerate(first):
-                cells = [_fmt(c[i]["ate_joint_rmse_m"]) for c in comps.values()]
-                table.add_row(str(comp["component"]), str(len(comp["sessions"])), *cells)
+            by_index = {k: {c["component"]: c for c in cs} for k, cs in comps.items()}
+            for index in sorted({i for cs in by_index.values() for i in cs}):
+                found = [cs[index] for cs in by_index.values() if index in cs]
+                cells = [
+                    _fmt(cs[index]["ate_joint_rmse_m"]) if index in cs else "-"
+                    for cs in by_index.values()
+                ]
+                table.add_row(str(index), str(len(found[0]["sessions"])), *cells)
             console.print(table)
     if report.loops is not None:
         lm = report.loops.as_dict()

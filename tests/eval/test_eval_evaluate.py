@@ -188,6 +188,15 @@ def test_every_component_of_several_sessions_gets_its_own_joint_ate(tmp_path):
     (odo,) = run["odometry"]["components_joint"]
     assert odo["sessions"] == ["b", "c"] and odo["ate_joint_rmse_m"] < 1e-6
     assert run["slam"]["joint_sessions"] == 1
+    # one such component: no table; with the map of two sessions as well, a row for each
+    out = CliRunner().invoke(app, ["eval", str(tmp_path), "--no-plots"]).output
+    assert "each aligned on its own" not in out
+    write_results(tmp_path, [*sessions, SessionResult("d", t + 60_000_000, gt_a, gt_a, gt_a)],
+                  components=[["b", "c"], ["a", "d"]], plots=False)  # fmt: skip
+    out = CliRunner().invoke(app, ["eval", str(tmp_path), "--no-plots"]).output
+    assert "each aligned on its own" in out
+    rows = [line.split() for line in out.splitlines() if line.startswith("│")]
+    assert ["│", "0", "│", "2", "│"] == rows[-2][:5] and ["│", "1", "│", "2", "│"] == rows[-1][:5]
 
 
 def test_slam_joint_ate_covers_the_anchored_map_only(tmp_path):
