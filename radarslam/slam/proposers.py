@@ -79,16 +79,42 @@ class CandidateProposer(Protocol):
         ...
 
 
-class RecognitionProposer:
-    """AutoPlace: the descriptor of the last key frames (t-2, t-1, t) queried among earlier key
-    frames, the recent past of the same session excluded; the key frame is then added. The
-    recognizer encodes each key frame's image once (its feature cache is keyed by sample
-    token)."""
+class _AutoPlaceProposer:
+    """What the AutoPlace proposers share: the run's state, the (lazily loaded) recognizer, the
+    timings their descriptor time is booked to, and the turned query."""
 
     def __init__(
         self, config: SlamConfig, state: MapState, recognizer: Callable, timings: SlamTimings
     ) -> None:
         self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
+
+    def settle(self, session, kf, accepted):
+        pass
+
+    def turned_proposals(
+        self, sequence: list[AccumulatedCloud], exclude: Callable, source: str, verifier: str
+    ) -> list[Proposal]:
+        """The best match of the sequence turned by 180 deg (a street driven the other way
+        round), for the search over headings near a half turn."""
+        rec = self.recognizer()
+        desc, rcs = rec.describe([turned_cloud(c) for c in sequence])
+        return [
+            Proposal(
+                self.state.key_frame(c.key),
+                c.descriptor_distance,
+                source,
+                verifier=verifier,
+                hint=HALF_TURN,
+            )
+            for c in rec.query_descriptor(desc, rcs, k=1, exclude=exclude)
+        ]
+
+
+class RecognitionProposer(_AutoPlaceProposer):
+    """AutoPlace: the descriptor of the last key frames (t-2, t-1, t) queried among earlier key
+    frames, the recent past of the same session excluded; the key frame is then added. The
+    recognizer encodes each key frame's image once (its feature cache is keyed by sample
+    token)."""
 
     def propose(self, session, kf, cloud, closed):
         cfg = self.config.loops
@@ -117,21 +143,13 @@ class RecognitionProposer:
             )
         return proposals
 
-    def settle(self, session, kf, accepted):
-        pass
 
-
-class TurnedProposer:
+class TurnedProposer(_AutoPlaceProposer):
     """For a session outside the map when nothing closed the key frame yet: AutoPlace queried
     with the key frame's image sequence turned by 180 deg, i.e. as the street looks driven the
     other way round, against the key frames of sessions not linked to it yet; the best match is
     verified by the translation search over headings near 180 deg (``loops.reversed_search``).
     It searches every ``reversed_every``-th key frame."""
-
-    def __init__(
-        self, config: SlamConfig, state: MapState, recognizer: Callable, timings: SlamTimings
-    ) -> None:
-        self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
 
     def propose(self, session, kf, cloud, closed):
         cfg = self.config.loops
@@ -148,41 +166,23 @@ class TurnedProposer:
         t0 = time.perf_counter()
         rec = self.recognizer()
         sequence = self.state.sequence(session, cloud, rec.seq_len)
-        desc, rcs = rec.describe([turned_cloud(c) for c in sequence])
         sessions = self.state.sessions
         group = session.group
 
         def exclude(key: NodeKey) -> bool:
             return sessions[key.session].group == group
 
-        candidates = rec.query_descriptor(desc, rcs, k=1, exclude=exclude)
+        proposals = self.turned_proposals(sequence, exclude, "reversed", "turned")
         self.timings.place_recognition_s += time.perf_counter() - t0
-        return [
-            Proposal(
-                self.state.key_frame(c.key),
-                c.descriptor_distance,
-                "reversed",
-                verifier="turned",
-                hint=HALF_TURN,
-            )
-            for c in candidates
-        ]
-
-    def settle(self, session, kf, accepted):
-        pass
+        return proposals
 
 
-class MergeProposer:
+class MergeProposer(_AutoPlaceProposer):
     """Map merging (``loops.merge_search_every``): every N-th key frame of a session, while
     other groups exist, AutoPlace queried among the key frames of the other groups only, plain
     and turned by 180 deg (``loops.reversed_search``), whatever closed the key frame in its own
     group. The best match of each query goes to the global search; accepted, it is a vote
     between the two groups (:class:`~radarslam.slam.linking.SessionLinker`)."""
-
-    def __init__(
-        self, config: SlamConfig, state: MapState, recognizer: Callable, timings: SlamTimings
-    ) -> None:
-        self.config, self.state, self.recognizer, self.timings = config, state, recognizer, timings
 
     def propose(self, session, kf, cloud, closed):
         cfg = self.config.loops
@@ -213,22 +213,9 @@ class MergeProposer:
             or c.descriptor_distance <= cfg.max_descriptor_distance
         ]
         if cfg.reversed_search:
-            desc, rcs = rec.describe([turned_cloud(c) for c in sequence])
-            proposals += [
-                Proposal(
-                    self.state.key_frame(c.key),
-                    c.descriptor_distance,
-                    "merge-reversed",
-                    verifier="merge_turned",
-                    hint=HALF_TURN,
-                )
-                for c in rec.query_descriptor(desc, rcs, k=1, exclude=exclude)
-            ]
+            proposals += self.turned_proposals(sequence, exclude, "merge-reversed", "merge_turned")
         self.timings.place_recognition_s += time.perf_counter() - t0
         return proposals
-
-    def settle(self, session, kf, accepted):
-        pass
 
 
 class ProximityProposer:
