@@ -56,11 +56,16 @@ def test_fov_and_range_limits():
     model = RadarModel(_quiet())
     behind = _make([[-20.0, 0.0]], 15.0, POLE)
     outside = _make([[10.0, 30.0]], 15.0, POLE)  # 72 deg off boresight
-    far_side = _make([[100.0 * np.cos(0.5), 100.0 * np.sin(0.5)]], 15.0, POLE)
-    far_bore = _make([[130.0, 0.0]], 15.0, POLE)  # beyond the near scan's 70 m
+    # 29 deg off boresight: within the near scan's reach (120 m) at 100 m, beyond it at 130 m
+    near_side = _make([[100.0 * np.cos(0.5), 100.0 * np.sin(0.5)]], 15.0, POLE)
+    far_side = _make([[130.0 * np.cos(0.5), 130.0 * np.sin(0.5)]], 15.0, POLE)
+    far_bore = _make([[130.0, 0.0]], 22.0, POLE)  # beyond the near scan, in the far beam
+    edge = _make([[90.0 * np.cos(1.0), 90.0 * np.sin(1.0)]], 15.0, POLE)  # 57 deg: reach 80 m
     assert _detect_rate(model, _world(behind), 50) == 0
     assert _detect_rate(model, _world(outside), 50) == 0
-    assert _detect_rate(model, _world(far_side), 50) == 0  # beyond the near scan
+    assert _detect_rate(model, _world(far_side), 50) == 0
+    assert _detect_rate(model, _world(edge), 50) == 0
+    assert _detect_rate(model, _world(near_side), 100) > 0.3
     assert _detect_rate(model, _world(far_bore), 100) > 0.5  # far scan on boresight
 
 
