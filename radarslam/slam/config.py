@@ -112,7 +112,8 @@ class LoopDetectionConfig(StrictModel):
     #: table).
     merge_search_every: int | None = Field(None, ge=1)
     #: The merge search's best match among the other groups is there whether they hold the
-    #: place or not, so its registrations must pass a tighter ``min_tight_fitness``.
+    #: place or not, so its registrations must pass this ``min_tight_fitness`` (measured at
+    #: 0.15 when the verifier's was 0.12; docs/results.md, settings table).
     merge_min_tight_fitness: float = Field(0.15, ge=0.0, le=1.0)
     #: A new session joins the map only after this many loops agree on where it is: placed by
     #: each loop, the loops' key frames land within ``link_consistency_m`` of each other (and

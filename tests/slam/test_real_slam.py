@@ -17,7 +17,7 @@ def test_no_loop_is_closed_between_real_scenes_that_share_no_place(real_dataroot
     scenes = [s.name for s in reader.scenes_for_location("boston-seaport")]
     assert scenes == ["scene-0103", "scene-0655", "scene-0757"]
     res = SlamPipeline(reader, SlamConfig(), progress=False).run(scenes)
-    # Measured: 17 candidates (AutoPlace plain and turned), every one below the fitness tests.
+    # Measured: 13 candidates (AutoPlace plain and turned), every one below the fitness tests.
     assert len(res.loops) >= 10
     assert not res.accepted_loops
     assert max(lp.fitness for lp in res.loops) < 0.45
