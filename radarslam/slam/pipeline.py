@@ -29,10 +29,10 @@
    g. **merge search** (off by default), whatever closed the key frame, every
       ``merge_search_every``-th key frame while other groups exist: AutoPlace queried (plain and
       turned) among the key frames of the other groups only, the best match of each verified
-      (tighter) and, accepted, a vote between the groups. Once a session closes loops in its own
-      group, its recognition finds the group's own passes first and its proximity loops hold
-      recognition off, so groups that overlap can stay apart; the search joins more of them but
-      gives look-alike streets more chances;
+      (at ``merge_min_tight_fitness``) and, accepted, a vote between the groups. Once a session
+      closes loops in its own group, its recognition finds the group's own passes first and its
+      proximity loops hold recognition off, so groups that overlap can stay apart; the search
+      joins more of them but gives look-alike streets more chances;
    h. accepted loops become robust factors; iSAM2 receives only the new factors and values.
 3. A final batch Levenberg-Marquardt, the static map, and the results folder.
 

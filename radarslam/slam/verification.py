@@ -37,8 +37,9 @@ class Verifiers:
     proximity: object
     #: turned-image candidates: the global search over headings near a half turn
     turned: object
-    #: the merge search's candidates (``recognition`` and ``turned``, tighter): it always finds
-    #: a best match among the other groups, whether they hold the place or not
+    #: the merge search's candidates (``recognition`` and ``turned`` at the merge search's own
+    #: ``min_tight_fitness``): it always finds a best match among the other groups, whether
+    #: they hold the place or not
     merge: object
     merge_turned: object
 
